@@ -1,0 +1,61 @@
+# rangefuse: `make run` and `make test` are the two commands; see README.md.
+PY ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-dev
+BENCH_STAMP := $(VENV)/.installed-bench
+export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
+PYTEST_FLAGS ?= -q
+
+.PHONY: install run demo test check lint types bench bench-full clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+# The service arrives with the REST issue; until then `make run` runs the demo pipeline.
+run: demo
+
+demo: install
+	$(BIN)/rangefuse synth object out/demo-object --views 12
+	$(BIN)/rangefuse fuse out/demo-object --voxel-size 0.012 --mode closed \
+		--grid-out out/demo-object-grid.npz
+
+test: install
+	$(BIN)/pytest $(PYTEST_FLAGS) -m "not real_data"
+
+lint: install
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+types: install
+	$(BIN)/mypy storage service
+
+check: lint types test
+
+$(BENCH_STAMP): $(STAMP)
+	@# Open3D's wheel links libusb; install it from Debian when missing (needs root).
+	@if ! ldconfig -p | grep -q libusb-1.0.so.0; then \
+		if [ "$$(id -u)" = 0 ]; then apt-get install -y -q libusb-1.0-0 >/dev/null \
+			|| (apt-get update -q && apt-get install -y -q libusb-1.0-0 >/dev/null); \
+		else echo "open3d needs libusb-1.0-0: sudo apt-get install libusb-1.0-0"; exit 1; fi; \
+	fi
+	$(BIN)/python -m pip install -q -e '.[dev,bench]'
+	touch $(BENCH_STAMP)
+
+# Small inputs: a smoke run of every benchmark.
+bench: $(BENCH_STAMP)
+	$(BIN)/python benchmarks/fusion.py --quick
+	$(BIN)/python benchmarks/vs_open3d.py --quick
+
+# The sizes the issues report.
+bench-full: $(BENCH_STAMP)
+	$(BIN)/python benchmarks/fusion.py
+	$(BIN)/python benchmarks/vs_open3d.py
+
+clean:
+	rm -rf $(VENV) .numba_cache out .pytest_cache .mypy_cache .ruff_cache

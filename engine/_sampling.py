@@ -1,0 +1,116 @@
+"""Range-map sampling inside kernels (METHOD.md §1, "Exact conventions").
+
+``sample_range`` is the single definition of "the interpolated range at
+``(u, v)``": bilinear over the four pixels around the point, all four valid,
+optionally within ``max_disc`` metres of each other. Every kernel that asks
+whether a point is informed (fusion, the view test through ``quad_reach``,
+edge refinement) goes through it or through the same quad definition.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from ._sensor_kernels import P_H, P_W, in_image, wraps
+
+#: Quads per side of a block of the reach map used by the view test.
+REACH_BLOCK = 8
+
+
+@njit(cache=True, inline="always")
+def quad_columns(kind, params):
+    """Number of pixel quads along a row: W for a wrapping sensor, else W - 1."""
+    W = int(params[P_W])
+    return W if wraps(kind, params) else W - 1
+
+
+@njit(cache=True)
+def quad_origin(kind, params, u, v):
+    """Quad ``(qu, qv)`` that holds pixel coordinates already known to be in the image."""
+    W = int(params[P_W])
+    H = int(params[P_H])
+    qu = int(math.floor(u))
+    qv = int(math.floor(v))
+    if qv > H - 2:
+        qv = H - 2
+    if not wraps(kind, params) and qu > W - 2:
+        qu = W - 2
+    return qu, qv
+
+
+@njit(cache=True)
+def sample_range(kind, params, rng, u, v, max_disc):
+    """Bilinear range at ``(u, v)`` and whether the point gets information.
+
+    ``rng`` is a prepared range map: finite values and NaN (no-return pixels already
+    converted). ``max_disc < 0`` disables the depth-discontinuity test.
+    """
+    if not in_image(kind, params, u, v):
+        return math.nan, False
+    qu, qv = quad_origin(kind, params, u, v)
+    qu1 = qu + 1
+    if qu1 == rng.shape[1]:
+        qu1 = 0
+    fu = u - qu
+    fv = v - qv
+    r00 = rng[qv, qu]
+    r01 = rng[qv, qu1]
+    r10 = rng[qv + 1, qu]
+    r11 = rng[qv + 1, qu1]
+    if math.isnan(r00) or math.isnan(r01) or math.isnan(r10) or math.isnan(r11):
+        return math.nan, False
+    if max_disc >= 0.0:
+        lo = min(min(r00, r01), min(r10, r11))
+        hi = max(max(r00, r01), max(r10, r11))
+        if hi - lo > max_disc:
+            return math.nan, False
+    r = (1.0 - fv) * ((1.0 - fu) * r00 + fu * r01) + fv * ((1.0 - fu) * r10 + fu * r11)
+    return r, True
+
+
+@njit(cache=True)
+def quad_ranges(rng, qu, qv, max_disc):
+    """The four corner ranges of a quad (wrapping columns), and whether it informs anything."""
+    qu1 = qu + 1
+    if qu1 == rng.shape[1]:
+        qu1 = 0
+    r00 = rng[qv, qu]
+    r01 = rng[qv, qu1]
+    r10 = rng[qv + 1, qu]
+    r11 = rng[qv + 1, qu1]
+    ok = not (math.isnan(r00) or math.isnan(r01) or math.isnan(r10) or math.isnan(r11))
+    if ok and max_disc >= 0.0:
+        lo = min(min(r00, r01), min(r10, r11))
+        hi = max(max(r00, r01), max(r10, r11))
+        ok = hi - lo <= max_disc
+    return r00, r01, r10, r11, ok
+
+
+@njit(cache=True, parallel=True)
+def reach_blocks(kind, params, rng, eps0, eps1, falloff, max_disc, out):
+    """Block maxima of the farthest informed distance of each quad.
+
+    A point whose interpolated range is ``r`` is informed up to ``d = r + eps(r) + f(r)``,
+    which grows with ``r``, so a quad informs nothing beyond the value for its largest
+    corner. ``out`` has one cell per ``REACH_BLOCK`` x ``REACH_BLOCK`` quads, ``-inf`` where
+    no quad of the block is valid.
+    """
+    nqv = rng.shape[0] - 1
+    nqu = quad_columns(kind, params)
+    for bv in prange(out.shape[0]):
+        for bu in range(out.shape[1]):
+            best = -np.inf
+            for qv in range(bv * REACH_BLOCK, min(nqv, (bv + 1) * REACH_BLOCK)):
+                for qu in range(bu * REACH_BLOCK, min(nqu, (bu + 1) * REACH_BLOCK)):
+                    r00, r01, r10, r11, ok = quad_ranges(rng, qu, qv, max_disc)
+                    if not ok:
+                        continue
+                    r = max(max(r00, r01), max(r10, r11))
+                    eps = eps0 + eps1 * r
+                    f = falloff if falloff > 0.0 else eps
+                    if r + eps + f > best:
+                        best = r + eps + f
+            out[bv, bu] = best

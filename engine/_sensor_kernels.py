@@ -1,0 +1,231 @@
+"""Sensor geometry inside numba kernels.
+
+A sensor reaches a kernel as a kind code, a float64 parameter vector and an
+elevation table (empty unless a spherical sensor has one). The layout of the
+parameter vector is fixed here; :mod:`engine.sensors` fills it.
+
+``project_point`` maps a sensor-frame point to continuous pixel coordinates
+``(u, v)`` (pixel centres at integers) and its line-of-sight distance ``d`` in
+the sensor's range convention. It returns ``u = nan`` where the point has no
+pixel at all (behind a pinhole camera, on a cylinder axis ...); whether
+``(u, v)`` lies inside the image is the caller's test.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+PINHOLE = 0
+SPHERICAL = 1
+CYLINDRICAL = 2
+ORTHOGRAPHIC = 3
+
+# common parameters
+P_W = 0
+P_H = 1
+P_MIN_RANGE = 2
+P_MAX_RANGE = 3
+# pinhole
+P_FX = 4
+P_FY = 5
+P_CX = 6
+P_CY = 7
+P_Z_CONV = 8  # 1: z-depth, 0: ray range
+# spherical and cylindrical columns
+P_AZ_MIN = 4
+P_DAZ = 5
+P_WRAP = 6
+# spherical rows
+P_EL_MAX = 7
+P_DEL = 8
+P_HAS_TABLE = 9
+# cylindrical rows
+P_CYL_FY = 7
+P_CYL_CY = 8
+P_LINEAR = 9  # 1: rows linear along the axis, 0: perspective (z / hypot(x, y))
+P_RADIAL = 10  # 1: range hypot(x, y), 0: ray range |p|
+# orthographic
+P_SX = 4
+P_SY = 5
+P_OCX = 6
+P_OCY = 7
+
+N_PARAMS = 11
+TWO_PI = 2.0 * math.pi
+
+
+@njit(cache=True, inline="always")
+def _column_from_azimuth(params, az):
+    # Angle measured from az_min in [0, 2 pi), then in columns.
+    a = (az - params[P_AZ_MIN]) % TWO_PI
+    return a / params[P_DAZ]
+
+
+@njit(cache=True)
+def _row_from_table(table, el):
+    # table is decreasing; find v0 with table[v0] >= el >= table[v0 + 1],
+    # extrapolating linearly from the end intervals.
+    n = table.shape[0]
+    if el >= table[0]:
+        v0 = 0
+    elif el <= table[n - 1]:
+        v0 = n - 2
+    else:
+        lo = 0
+        hi = n - 1
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if table[mid] >= el:
+                lo = mid
+            else:
+                hi = mid
+        v0 = lo
+    return v0 + (table[v0] - el) / (table[v0] - table[v0 + 1])
+
+
+@njit(cache=True)
+def _elevation_from_table(table, v):
+    n = table.shape[0]
+    v0 = int(math.floor(v))
+    if v0 < 0:
+        v0 = 0
+    elif v0 > n - 2:
+        v0 = n - 2
+    return table[v0] + (v - v0) * (table[v0 + 1] - table[v0])
+
+
+@njit(cache=True)
+def project_point(kind, params, table, x, y, z):
+    """Sensor-frame point -> (u, v, d); ``u`` is nan where there is no pixel."""
+    nan = math.nan
+    if kind == PINHOLE:
+        if z <= 0.0:
+            return nan, nan, nan
+        u = params[P_FX] * x / z + params[P_CX]
+        v = params[P_FY] * y / z + params[P_CY]
+        if params[P_Z_CONV] != 0.0:
+            d = z
+        else:
+            d = math.sqrt(x * x + y * y + z * z)
+        return u, v, d
+    if kind == SPHERICAL:
+        rho = math.sqrt(x * x + y * y)
+        d = math.sqrt(rho * rho + z * z)
+        if d == 0.0:
+            return nan, nan, nan
+        u = _column_from_azimuth(params, math.atan2(y, x))
+        el = math.atan2(z, rho)
+        if params[P_HAS_TABLE] != 0.0:
+            v = _row_from_table(table, el)
+        else:
+            v = (params[P_EL_MAX] - el) / params[P_DEL]
+        return u, v, d
+    if kind == CYLINDRICAL:
+        rho = math.sqrt(x * x + y * y)
+        if rho == 0.0:
+            return nan, nan, nan
+        u = _column_from_azimuth(params, math.atan2(y, x))
+        if params[P_LINEAR] != 0.0:
+            v = params[P_CYL_CY] - params[P_CYL_FY] * z
+        else:
+            v = params[P_CYL_CY] - params[P_CYL_FY] * z / rho
+        if params[P_RADIAL] != 0.0:
+            d = rho
+        else:
+            d = math.sqrt(rho * rho + z * z)
+        return u, v, d
+    # ORTHOGRAPHIC
+    if z < 0.0:
+        return nan, nan, nan
+    return x / params[P_SX] + params[P_OCX], y / params[P_SY] + params[P_OCY], z
+
+
+@njit(cache=True)
+def unproject_point(kind, params, table, u, v, d):
+    """(u, v, d) -> sensor-frame point; nan where no point has that range."""
+    nan = math.nan
+    if kind == PINHOLE:
+        xn = (u - params[P_CX]) / params[P_FX]
+        yn = (v - params[P_CY]) / params[P_FY]
+        if params[P_Z_CONV] != 0.0:
+            s = d
+        else:
+            s = d / math.sqrt(xn * xn + yn * yn + 1.0)
+        return xn * s, yn * s, s
+    if kind == SPHERICAL:
+        az = params[P_AZ_MIN] + u * params[P_DAZ]
+        if params[P_HAS_TABLE] != 0.0:
+            el = _elevation_from_table(table, v)
+        else:
+            el = params[P_EL_MAX] - v * params[P_DEL]
+        c = math.cos(el)
+        return d * c * math.cos(az), d * c * math.sin(az), d * math.sin(el)
+    if kind == CYLINDRICAL:
+        az = params[P_AZ_MIN] + u * params[P_DAZ]
+        if params[P_LINEAR] != 0.0:
+            z = (params[P_CYL_CY] - v) / params[P_CYL_FY]
+            if params[P_RADIAL] != 0.0:
+                rho = d
+            else:
+                q = d * d - z * z
+                if q < 0.0:
+                    return nan, nan, nan
+                rho = math.sqrt(q)
+        else:
+            t = (params[P_CYL_CY] - v) / params[P_CYL_FY]
+            if params[P_RADIAL] != 0.0:
+                rho = d
+            else:
+                rho = d / math.sqrt(1.0 + t * t)
+            z = t * rho
+        return rho * math.cos(az), rho * math.sin(az), z
+    # ORTHOGRAPHIC
+    return (u - params[P_OCX]) * params[P_SX], (v - params[P_OCY]) * params[P_SY], d
+
+
+@njit(cache=True, inline="always")
+def wraps(kind, params):
+    """True for a full-turn sensor whose columns wrap around."""
+    return kind in (SPHERICAL, CYLINDRICAL) and params[P_WRAP] != 0.0
+
+
+@njit(cache=True)
+def in_image(kind, params, u, v):
+    """True when continuous pixel coordinates can be interpolated (METHOD exact conventions).
+
+    Rows must lie in ``[0, H - 1]``; columns in ``[0, W - 1]``, or in ``[0, W)``
+    for a wrapping sensor (between the last column and the first).
+    """
+    if not (v >= 0.0 and v <= params[P_H] - 1.0):
+        return False
+    if wraps(kind, params):
+        return u >= 0.0 and u < params[P_W]
+    return u >= 0.0 and u <= params[P_W] - 1.0
+
+
+@njit(cache=True, parallel=True)
+def project_many(kind, params, table, p_S, out):
+    """Rows of ``p_S`` (n, 3) -> rows of ``out`` (n, 3) = (u, v, d)."""
+    for n in prange(p_S.shape[0]):
+        u, v, d = project_point(kind, params, table, p_S[n, 0], p_S[n, 1], p_S[n, 2])
+        out[n, 0] = u
+        out[n, 1] = v
+        out[n, 2] = d
+
+
+@njit(cache=True, parallel=True)
+def unproject_many(kind, params, table, uvd, out):
+    """Rows of ``uvd`` (n, 3) -> sensor-frame points in ``out`` (n, 3)."""
+    for n in prange(uvd.shape[0]):
+        x, y, z = unproject_point(kind, params, table, uvd[n, 0], uvd[n, 1], uvd[n, 2])
+        out[n, 0] = x
+        out[n, 1] = y
+        out[n, 2] = z
+
+
+def empty_table() -> np.ndarray:
+    """The elevation table of a sensor that has none."""
+    return np.zeros(0, dtype=np.float64)

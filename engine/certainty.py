@@ -1,0 +1,221 @@
+"""Certainty of one scan at one point, and its fixed-point log-odds (METHOD.md §1-2).
+
+For a point at signed distance ``alpha = d(p) - r`` behind the measured range
+``r`` (paper Eq. 1, 3, 4), with ``eps = eps0 + eps1 * r`` and fall-off ``f``
+(default ``eps``)::
+
+    C(alpha) = rho                                   alpha < -eps
+             = rho + (1/2 - rho) (alpha + eps) / eps     -eps <= alpha <= eps
+             = (1 - rho) - (1/2 - rho) (alpha - eps) / f  eps < alpha <= eps + f
+             (not informed)                          alpha > eps + f
+
+The ``"erf"`` shape replaces the front part by the certainty of a Gaussian
+range error, ``rho + (1 - 2 rho) Phi(alpha / sigma)`` with
+``sigma = eps * sqrt(2 / pi)`` (the same slope at the surface as the linear
+ramp), and falls off linearly from ``C(eps)`` to 1/2 behind it.
+
+Scans fuse by adding ``logit(C)`` (super-Bayesian fusion, Eq. 5-6). Each
+contribution is quantised to ``q = floor(logit(C) * LOGIT_SCALE + 1/2)`` and
+stored packed with a count of informing scans (see :func:`pack`), so sums are
+exact integers: order-free and exactly removable.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+from numba import njit
+
+from .defaults import COUNT_BITS, LOGIT_SCALE
+from .errors import InvalidNoiseError
+
+__all__ = [
+    "COUNT_MASK",
+    "SHAPES",
+    "NoiseModel",
+    "decode_count",
+    "decode_logodds",
+    "pack",
+]
+
+SHAPES = ("linear", "erf")
+SHAPE_LINEAR = 0
+SHAPE_ERF = 1
+COUNT_MASK = (1 << COUNT_BITS) - 1
+_SQRT_2_OVER_PI = math.sqrt(2.0 / math.pi)
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Range-noise model of METHOD §1.
+
+    Parameters
+    ----------
+    eps_m : float
+        Noise half-width at zero range, metres (``eps0``, > 0).
+    eps_per_m : float
+        Growth of the half-width with range (``eps1``, >= 0, < 1): ``eps = eps0 + eps1 * r``.
+    rho : float
+        Outlier probability, ``0 < rho < 1/2``.
+    falloff_m : float or None
+        Distance behind the noise band over which certainty returns to 1/2; ``None`` means
+        ``eps`` at that range (the paper's choice).
+    shape : {"linear", "erf"}
+        Piecewise-linear ramp (the paper's default) or a Gaussian (erf) ramp.
+    """
+
+    eps_m: float
+    eps_per_m: float = 0.0
+    rho: float = 0.05
+    falloff_m: float | None = None
+    shape: str = "linear"
+
+    def __post_init__(self) -> None:
+        def number(name: str, value: Any) -> float:
+            if isinstance(value, bool):
+                raise InvalidNoiseError(name, f"must be a number, got {value!r}")
+            try:
+                out = float(value)
+            except (TypeError, ValueError):
+                raise InvalidNoiseError(name, f"must be a number, got {value!r}") from None
+            if not math.isfinite(out):
+                raise InvalidNoiseError(name, f"must be finite, got {value!r}")
+            return out
+
+        eps = number("eps", self.eps_m)
+        if eps <= 0.0:
+            raise InvalidNoiseError("eps", f"noise half-width must be > 0 metres, got {eps}")
+        eps1 = number("eps_per_m", self.eps_per_m)
+        if not 0.0 <= eps1 < 1.0:
+            raise InvalidNoiseError("eps_per_m", f"must be in [0, 1), got {eps1}")
+        rho = number("rho", self.rho)
+        if not 0.0 < rho < 0.5:
+            raise InvalidNoiseError("rho", f"outlier probability must be in (0, 1/2), got {rho}")
+        falloff = self.falloff_m
+        if falloff is not None:
+            falloff = number("falloff", falloff)
+            if falloff <= 0.0:
+                raise InvalidNoiseError("falloff", f"must be > 0 metres, got {falloff}")
+        if self.shape not in SHAPES:
+            raise InvalidNoiseError(
+                "shape", f"must be one of {', '.join(SHAPES)}, got {self.shape!r}"
+            )
+        object.__setattr__(self, "eps_m", eps)
+        object.__setattr__(self, "eps_per_m", eps1)
+        object.__setattr__(self, "rho", rho)
+        object.__setattr__(self, "falloff_m", falloff)
+
+    @property
+    def shape_code(self) -> int:
+        return SHAPES.index(self.shape)
+
+    def kernel_args(self) -> tuple[float, float, float, float, int, int]:
+        """``(eps0, eps1, rho, falloff or -1, shape code, q_rho)`` as kernels take them."""
+        falloff = -1.0 if self.falloff_m is None else self.falloff_m
+        return (
+            self.eps_m,
+            self.eps_per_m,
+            self.rho,
+            falloff,
+            self.shape_code,
+            quantise(logit(self.rho)),
+        )
+
+    def certainty(self, alpha: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """C(alpha) at signed distances ``alpha`` behind measured ranges ``r`` (metres).
+
+        NaN where the point is not informed (``alpha > eps + falloff``).
+        """
+        alpha, r = np.broadcast_arrays(np.asarray(alpha, np.float64), np.asarray(r, np.float64))
+        out = np.empty(alpha.shape, np.float64)
+        eps0, eps1, rho, falloff, shape, _ = self.kernel_args()
+        _certainty_many(alpha.ravel(), r.ravel(), eps0, eps1, rho, falloff, shape, out.reshape(-1))
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(data: dict[str, Any]) -> NoiseModel:
+        known = {"eps_m", "eps_per_m", "rho", "falloff_m", "shape"}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise InvalidNoiseError(unknown[0], f"unknown noise parameter (known: {sorted(known)})")
+        if "eps_m" not in data:
+            raise InvalidNoiseError("eps", "missing")
+        return NoiseModel(**data)
+
+
+@njit(cache=True)
+def logit(c):
+    return math.log(c / (1.0 - c))
+
+
+@njit(cache=True)
+def quantise(x):
+    return np.int64(math.floor(x * LOGIT_SCALE + 0.5))
+
+
+@njit(cache=True)
+def certainty(alpha, eps, falloff, rho, shape):
+    """C(alpha) for ``alpha <= eps + falloff`` (the caller tests that the point is informed)."""
+    if shape == SHAPE_LINEAR:
+        if alpha < -eps:
+            return rho
+        if alpha <= eps:
+            return rho + (0.5 - rho) * (alpha + eps) / eps
+        return (1.0 - rho) - (0.5 - rho) * (alpha - eps) / falloff
+    sigma = eps * _SQRT_2_OVER_PI
+    if alpha <= eps:
+        return rho + (1.0 - 2.0 * rho) * 0.5 * math.erfc(-alpha / (sigma * math.sqrt(2.0)))
+    c_eps = rho + (1.0 - 2.0 * rho) * 0.5 * math.erfc(-eps / (sigma * math.sqrt(2.0)))
+    return c_eps - (c_eps - 0.5) * (alpha - eps) / falloff
+
+
+@njit(cache=True)
+def contribution(alpha, r, eps0, eps1, rho, falloff, shape, q_rho):
+    """Quantised ``logit(C)`` of one scan at one point, and whether the point is informed.
+
+    ``q_rho`` is ``quantise(logit(rho))``, used for all free space of the linear shape
+    (no logarithm there: most voxels are free).
+    """
+    eps = eps0 + eps1 * r
+    f = falloff if falloff > 0.0 else eps
+    if alpha > eps + f:
+        return np.int64(0), False
+    if shape == SHAPE_LINEAR and alpha < -eps:
+        return q_rho, True
+    return quantise(logit(certainty(alpha, eps, f, rho, shape))), True
+
+
+@njit(cache=True)
+def _certainty_many(alpha, r, eps0, eps1, rho, falloff, shape, out):
+    for n in range(alpha.shape[0]):
+        eps = eps0 + eps1 * r[n]
+        f = falloff if falloff > 0.0 else eps
+        if alpha[n] > eps + f:
+            out[n] = math.nan
+        else:
+            out[n] = certainty(alpha[n], eps, f, rho, shape)
+
+
+@njit(cache=True, inline="always")
+def pack(q):
+    """One informing scan's contribution as stored: ``q << COUNT_BITS | 1``."""
+    return q * (1 << COUNT_BITS) + 1
+
+
+def decode_count(voxels: np.ndarray) -> np.ndarray:
+    """Number of scans that inform each voxel (0 means unknown)."""
+    return (np.asarray(voxels, np.int64) & COUNT_MASK).astype(np.int32)
+
+
+def decode_logodds(voxels: np.ndarray) -> np.ndarray:
+    """Fused log-odds ``L`` (float32) of packed voxels; NaN where unknown."""
+    voxels = np.asarray(voxels, np.int64)
+    out = (voxels >> COUNT_BITS).astype(np.float64) / LOGIT_SCALE
+    out[(voxels & COUNT_MASK) == 0] = np.nan
+    return out.astype(np.float32)

@@ -1,0 +1,351 @@
+"""Fusion of scans into tiles (METHOD.md §2; DESIGN.md invariants 2-4).
+
+Every voxel of a tile is projected into every scan that has the tile in view
+(backward projection); the scan's certainty at the voxel centre becomes a
+fixed-point log-odds contribution that is added to the voxel (or subtracted
+when the scan is removed). Integer sums make the volume bit-identical whatever
+the order of scans and however the tiles are split among threads.
+
+:class:`Volume` keeps the bookkeeping that makes that true when scans arrive
+one by one: a tile created by a late scan also receives every earlier scan
+that has it in view, and a new scan also updates existing tiles it sees
+through. :meth:`Volume.add_many` fuses a batch in two passes (allocate, then
+integrate) with the same result.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit, prange
+
+from . import _sensor_kernels as _k
+from ._sampling import sample_range
+from .certainty import contribution, pack
+from .errors import InvalidInputError, ScanNotFoundError
+from .grid import GridSpec
+from .scans import FusionParams, PreparedScan, Scan, prepare_scan
+from .tiling import tiles_in_view, tiles_touched
+from .volume import DenseGrid, MemoryTileStore, TileStore, dense_logodds
+
+__all__ = ["IntegrationReport", "Volume", "integrate_tiles"]
+
+Progress = Callable[[int, int], None]
+
+
+@njit(cache=True, parallel=True)
+def _integrate(
+    keys,
+    data,
+    rows,
+    sign,
+    T,
+    h,
+    M,
+    c,
+    kind,
+    params,
+    table,
+    rng,
+    eps0,
+    eps1,
+    rho,
+    falloff,
+    shape,
+    q_rho,
+    max_disc,
+    informed,
+):
+    """Add ``sign`` times one scan's contribution to the tiles ``data[rows]``.
+
+    ``informed[row]`` receives the number of voxels of each tile the scan informs.
+    """
+    for n in prange(rows.shape[0]):
+        row = rows[n]
+        count = 0
+        i0 = keys[row, 0] * T
+        j0 = keys[row, 1] * T
+        k0 = keys[row, 2] * T
+        for a in range(T):
+            x = ((i0 + a) + 0.5) * h
+            for b in range(T):
+                y = ((j0 + b) + 0.5) * h
+                bx = M[0, 0] * x + M[0, 1] * y + c[0]
+                by = M[1, 0] * x + M[1, 1] * y + c[1]
+                bz = M[2, 0] * x + M[2, 1] * y + c[2]
+                for cc in range(T):
+                    z = ((k0 + cc) + 0.5) * h
+                    u, v, d = _k.project_point(
+                        kind, params, table, bx + M[0, 2] * z, by + M[1, 2] * z, bz + M[2, 2] * z
+                    )
+                    if u != u:
+                        continue
+                    r, ok = sample_range(kind, params, rng, u, v, max_disc)
+                    if not ok:
+                        continue
+                    q, inf = contribution(d - r, r, eps0, eps1, rho, falloff, shape, q_rho)
+                    if inf:
+                        data[row, a, b, cc] += sign * pack(q)
+                        count += 1
+        informed[row] = count
+
+
+def integrate_tiles(
+    scan: PreparedScan,
+    grid: GridSpec,
+    keys: np.ndarray,
+    data: np.ndarray,
+    rows: np.ndarray | None = None,
+    sign: int = 1,
+) -> np.ndarray:
+    """Add (``sign=1``) or subtract (``sign=-1``) one scan's contribution to tiles, in place.
+
+    Parameters
+    ----------
+    scan : PreparedScan
+    grid : GridSpec
+    keys : int64 (n, 3)
+        Tile keys.
+    data : int64 (n, T, T, T)
+        Packed voxels of those tiles, C-contiguous; updated in place.
+    rows : int64 (m,), optional
+        Only these rows of ``keys``/``data`` (default: all).
+
+    Returns
+    -------
+    int64 (n,)
+        Voxels informed per tile (0 for rows not processed).
+    """
+    keys = np.ascontiguousarray(keys, np.int64)
+    if rows is None:
+        rows = np.arange(len(keys), dtype=np.int64)
+    informed = np.zeros(len(keys), np.int64)
+    if len(rows):
+        _integrate(
+            keys,
+            data,
+            np.ascontiguousarray(rows, np.int64),
+            np.int64(sign),
+            grid.tile_size_vox,
+            grid.voxel_size_m,
+            scan.M,
+            scan.c,
+            scan.kind,
+            scan.params,
+            scan.table,
+            scan.range_m,
+            *scan.noise_args(),
+            scan.max_disc,
+            informed,
+        )
+    return informed
+
+
+@dataclass
+class IntegrationReport:
+    """What one change to the volume did (DESIGN.md invariant 7: meshing redoes only this)."""
+
+    changed: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
+    created: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
+    deleted: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
+    voxel_updates: int = 0
+    scans: int = 0
+
+
+_KEY_LIMIT = 1 << 20
+
+
+def _void_view(keys: np.ndarray) -> np.ndarray:
+    """One sortable int64 per tile key (keys must lie within +-2^20 tiles of the origin)."""
+    keys = np.ascontiguousarray(keys, np.int64)
+    if len(keys) and (keys.min() <= -_KEY_LIMIT or keys.max() >= _KEY_LIMIT):
+        raise InvalidInputError("bounds", "the scene extends beyond 2^20 tiles from the origin")
+    shifted = keys + _KEY_LIMIT
+    return (shifted[:, 0] << 42) | (shifted[:, 1] << 21) | shifted[:, 2]
+
+
+def _rows_of(keys: np.ndarray, subset: np.ndarray) -> np.ndarray:
+    """Rows of sorted unique ``keys`` that hold each member of ``subset``."""
+    return np.searchsorted(_void_view(keys), _void_view(subset))
+
+
+def _isin(keys: np.ndarray, among: np.ndarray) -> np.ndarray:
+    return np.isin(_void_view(keys), _void_view(among))
+
+
+def _sorted_unique(keys: np.ndarray) -> np.ndarray:
+    if len(keys) == 0:
+        return np.zeros((0, 3), np.int64)
+    order = np.unique(_void_view(keys), return_index=True)[1]
+    return np.ascontiguousarray(keys[order])
+
+
+class Volume:
+    """A fused volume: tiles in a store plus the scans fused into it.
+
+    Parameters
+    ----------
+    grid : GridSpec
+    params : FusionParams
+    store : TileStore, optional
+        Defaults to a :class:`MemoryTileStore`.
+    """
+
+    def __init__(self, grid: GridSpec, params: FusionParams, store: TileStore | None = None):
+        self.grid = grid
+        self.params = params
+        self.store: TileStore = store if store is not None else MemoryTileStore(grid.tile_size_vox)
+        if self.store.tile_size != grid.tile_size_vox:
+            raise InvalidInputError("tile_size", "store and grid disagree on the tile size")
+        self._scans: dict[str, Scan] = {}
+        self._prepared: dict[str, PreparedScan] = {}
+
+    # --- scans --------------------------------------------------------------------------------
+    @property
+    def scan_ids(self) -> list[str]:
+        return list(self._scans)
+
+    def __contains__(self, scan_id: str) -> bool:
+        return scan_id in self._scans
+
+    def _prepare(self, scan_id: str) -> PreparedScan:
+        prepared = self._prepared.get(scan_id)
+        if prepared is None:
+            prepared = prepare_scan(self._scans[scan_id], self.params)
+            self._prepared[scan_id] = prepared
+        return prepared
+
+    # --- changes ------------------------------------------------------------------------------
+    def add(self, scan_id: str, scan: Scan) -> IntegrationReport:
+        """Fuse one scan; see :meth:`add_many`."""
+        return self.add_many([(scan_id, scan)])
+
+    def add_many(
+        self, items: Iterable[tuple[str, Scan]], progress: Progress | None = None
+    ) -> IntegrationReport:
+        """Fuse scans into the volume.
+
+        The result is bit-identical to fusing all scans the volume holds at once, in any
+        order: tiles the new scans create also receive every earlier scan that has them in
+        view, and the new scans update every existing tile they have in view.
+
+        ``progress(done, total)`` is called after each scan is integrated.
+        """
+        items = list(items)
+        new_ids: list[str] = []
+        for scan_id, scan in items:
+            if not isinstance(scan_id, str) or not scan_id:
+                raise InvalidInputError("scan_id", f"must be a non-empty string, got {scan_id!r}")
+            if scan_id in self._scans or scan_id in new_ids:
+                raise InvalidInputError("scan_id", f"{scan_id!r} is already in the volume")
+            if not isinstance(scan, Scan):
+                raise InvalidInputError("scan", f"must be a Scan, got {type(scan).__name__}")
+            new_ids.append(scan_id)
+        old_ids = list(self._scans)
+        for scan_id, scan in items:
+            self._scans[scan_id] = scan
+        try:
+            return self._integrate_new(old_ids, new_ids, progress)
+        except BaseException:
+            for scan_id in new_ids:
+                self._scans.pop(scan_id, None)
+                self._prepared.pop(scan_id, None)
+            raise
+
+    def _integrate_new(
+        self, old_ids: list[str], new_ids: list[str], progress: Progress | None
+    ) -> IntegrationReport:
+        grid = self.grid
+        existing = self.store.keys()
+        # pass 1: allocation
+        touched_by: dict[str, np.ndarray] = {}
+        for scan_id in new_ids:
+            touched_by[scan_id] = tiles_touched(self._prepare(scan_id), grid)
+        all_touched = _sorted_unique(
+            np.concatenate([np.zeros((0, 3), np.int64), *touched_by.values()])
+        )
+        created = all_touched[~_isin(all_touched, existing)] if len(existing) else all_touched
+        keys = _sorted_unique(np.concatenate([existing, created]))
+        is_new = _isin(keys, created)
+        # pass 2: integration; new scans into every tile in view, old scans into new tiles
+        data = np.zeros(
+            (len(keys), grid.tile_size_vox, grid.tile_size_vox, grid.tile_size_vox), np.int64
+        )
+        loaded = np.zeros(len(keys), np.bool_)
+        changed = np.zeros(len(keys), np.bool_)
+        updates = 0
+        order = [(scan_id, True) for scan_id in new_ids] + [(s, False) for s in old_ids]
+        for done, (scan_id, is_new_scan) in enumerate(order, 1):
+            prepared = self._prepare(scan_id)
+            candidates = np.arange(len(keys)) if is_new_scan else np.flatnonzero(is_new)
+            if len(candidates) == 0:
+                continue
+            rows = candidates[tiles_in_view(prepared, grid, keys[candidates])]
+            to_load = rows[~loaded[rows] & ~is_new[rows]]
+            if len(to_load):
+                data[to_load] = self.store.read(keys[to_load])
+                loaded[to_load] = True
+            informed = integrate_tiles(prepared, grid, keys, data, rows)
+            changed |= informed > 0
+            updates += int(informed.sum())
+            if progress is not None and is_new_scan:
+                progress(done, len(new_ids))
+        # owners, then write what changed or was created
+        owners = self.store.owners(keys)
+        write = changed | is_new
+        for scan_id, touched in touched_by.items():
+            for row in _rows_of(keys, touched):
+                owners[row] = owners[row] | {scan_id}
+                write[row] = True
+        rows = np.flatnonzero(write)
+        to_load = rows[~loaded[rows] & ~is_new[rows]]  # owner changes on tiles not in view
+        if len(to_load):
+            data[to_load] = self.store.read(keys[to_load])
+        self.store.write(keys[rows], data[rows], [owners[r] for r in rows])
+        return IntegrationReport(
+            changed=keys[changed], created=created, voxel_updates=updates, scans=len(new_ids)
+        )
+
+    def remove(self, scan_id: str) -> IntegrationReport:
+        """Remove a scan: subtract exactly its contribution; drop tiles it alone owned.
+
+        Restores, bit for bit, the volume fused without the scan.
+        """
+        if scan_id not in self._scans:
+            raise ScanNotFoundError(f"scan {scan_id!r} is not in the volume")
+        prepared = self._prepare(scan_id)
+        keys = self.store.keys()
+        owners = self.store.owners(keys)
+        orphan = np.array([own == {scan_id} for own in owners], dtype=np.bool_)
+        kept = np.flatnonzero(~orphan)
+        rows = kept[tiles_in_view(prepared, self.grid, keys[kept])]
+        data = self.store.read(keys[rows])
+        informed = integrate_tiles(prepared, self.grid, keys[rows], data, sign=-1)
+        new_owners = [owners[r] - {scan_id} for r in rows]
+        # owners also change on tiles the scan touched but does not inform
+        relabel = [r for r in kept if scan_id in owners[r] and r not in set(rows.tolist())]
+        self.store.write(keys[rows], data, new_owners)
+        if relabel:
+            rel = np.array(relabel, np.int64)
+            self.store.write(
+                keys[rel], self.store.read(keys[rel]), [owners[r] - {scan_id} for r in relabel]
+            )
+        self.store.delete(keys[orphan])
+        del self._scans[scan_id]
+        self._prepared.pop(scan_id, None)
+        return IntegrationReport(
+            changed=keys[rows][informed > 0],
+            deleted=keys[orphan],
+            voxel_updates=int(informed.sum()),
+            scans=1,
+        )
+
+    # --- reading ------------------------------------------------------------------------------
+    def tile_keys(self) -> np.ndarray:
+        return self.store.keys()
+
+    def to_dense(self, bounds_m: Sequence[float] | None = None) -> DenseGrid:
+        """The fused log-odds as a dense grid (see :func:`engine.volume.dense_logodds`)."""
+        return dense_logodds(self.store, self.grid, bounds_m)

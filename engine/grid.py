@@ -1,0 +1,133 @@
+"""The global voxel lattice and its tiles (DESIGN.md invariant 1).
+
+Voxel ``(i, j, k)`` (integers, possibly negative) is centred at
+``((i, j, k) + 1/2) * voxel_size`` in world coordinates. Tile ``(a, b, c)``
+holds voxels ``a * tile_size .. (a + 1) * tile_size - 1`` along x, and so on.
+The region of interest (ROI), when given as bounds, is the set of voxels whose
+centres lie inside the box.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .defaults import TILE_SIZE_VOX
+from .errors import InvalidGridError
+
+__all__ = ["MODES", "GridSpec"]
+
+MODES = ("mapping", "closed")
+_MIN_TILE_VOX = 4
+_MAX_TILE_VOX = 128
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """Voxel size, tile size, mode and region of interest of a scene.
+
+    Parameters
+    ----------
+    voxel_size_m : float
+        Edge of a voxel, metres.
+    tile_size_vox : int
+        Voxels along each edge of a cubic tile.
+    mode : {"mapping", "closed"}
+        ``"mapping"`` allocates tiles around observed surfaces; ``"closed"`` allocates every
+        tile of the region of interest that a line of sight crosses (needs ``bounds_m``).
+    bounds_m : (x0, y0, z0, x1, y1, z1) or None
+        Region of interest, world metres.
+    """
+
+    voxel_size_m: float
+    tile_size_vox: int = TILE_SIZE_VOX
+    mode: str = "mapping"
+    bounds_m: tuple[float, float, float, float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        try:
+            h = float(self.voxel_size_m)
+        except (TypeError, ValueError):
+            raise InvalidGridError(
+                "voxel_size", f"must be a number, got {self.voxel_size_m!r}"
+            ) from None
+        if not (math.isfinite(h) and h > 0.0):
+            raise InvalidGridError("voxel_size", f"must be a positive number of metres, got {h}")
+        if h > 100.0:
+            raise InvalidGridError("voxel_size", f"{h} m is not a sensible voxel size")
+        object.__setattr__(self, "voxel_size_m", h)
+        t = self.tile_size_vox
+        if isinstance(t, bool) or not isinstance(t, (int, np.integer)):
+            raise InvalidGridError("tile_size", f"must be an integer, got {t!r}")
+        if not _MIN_TILE_VOX <= t <= _MAX_TILE_VOX:
+            raise InvalidGridError(
+                "tile_size", f"must be between {_MIN_TILE_VOX} and {_MAX_TILE_VOX} voxels, got {t}"
+            )
+        object.__setattr__(self, "tile_size_vox", int(t))
+        if self.mode not in MODES:
+            raise InvalidGridError("mode", f"must be one of {', '.join(MODES)}, got {self.mode!r}")
+        if self.bounds_m is not None:
+            b = self.bounds_m
+            try:
+                values = tuple(float(x) for x in b)
+            except (TypeError, ValueError):
+                raise InvalidGridError("bounds", f"must be six numbers, got {b!r}") from None
+            if len(values) != 6 or not all(math.isfinite(x) for x in values):
+                raise InvalidGridError("bounds", f"must be six finite numbers, got {b!r}")
+            for axis in range(3):
+                if values[axis] >= values[axis + 3]:
+                    name = "xyz"[axis]
+                    raise InvalidGridError(
+                        "bounds",
+                        f"{name}0 must be less than {name}1, got {values[axis]} and "
+                        f"{values[axis + 3]}",
+                    )
+            object.__setattr__(self, "bounds_m", values)
+            lo, hi = self.roi_voxels()
+            if np.any(hi <= lo):
+                raise InvalidGridError(
+                    "bounds", f"the box holds no voxel centre at voxel size {h} m"
+                )
+        elif self.mode == "closed":
+            raise InvalidGridError("bounds", "closed mode needs a region of interest")
+
+    @property
+    def tile_size_m(self) -> float:
+        return self.tile_size_vox * self.voxel_size_m
+
+    def roi_voxels(self) -> tuple[np.ndarray, np.ndarray]:
+        """Voxel index range ``[lo, hi)`` (int64 (3,) each) of the region of interest."""
+        if self.bounds_m is None:
+            raise InvalidGridError("bounds", "this grid has no region of interest")
+        b = np.asarray(self.bounds_m, np.float64)
+        h = self.voxel_size_m
+        lo = np.ceil(b[:3] / h - 0.5).astype(np.int64)
+        hi = np.floor(b[3:] / h - 0.5).astype(np.int64) + 1
+        return lo, hi
+
+    def roi_tiles(self) -> tuple[np.ndarray, np.ndarray]:
+        """Tile index range ``[lo, hi)`` of the tiles that hold voxels of the region of interest."""
+        lo, hi = self.roi_voxels()
+        t = self.tile_size_vox
+        return np.floor_divide(lo, t), np.floor_divide(hi - 1, t) + 1
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "voxel_size_m": self.voxel_size_m,
+            "tile_size_vox": self.tile_size_vox,
+            "mode": self.mode,
+            "bounds_m": None if self.bounds_m is None else list(self.bounds_m),
+        }
+
+    @staticmethod
+    def from_dict(data: dict[str, Any]) -> GridSpec:
+        bounds = data.get("bounds_m")
+        return GridSpec(
+            voxel_size_m=data["voxel_size_m"],
+            tile_size_vox=data.get("tile_size_vox", TILE_SIZE_VOX),
+            mode=data.get("mode", "mapping"),
+            bounds_m=None if bounds is None else tuple(bounds),
+        )

@@ -1,0 +1,279 @@
+"""Scans, fusion parameters, and scans prepared for the kernels.
+
+A :class:`Scan` is one registered range map (FORMAT.md): an H x W float32
+array of ranges (finite: a measurement, ``+inf``: no return, NaN: invalid), a
+sensor model, a pose ``T_W_S`` (sensor-to-world) and optional noise overrides.
+Constructing one validates everything; the message of the error names the field.
+
+:func:`prepare_scan` applies the scene's :class:`FusionParams` once (filter,
+no-return policy) and computes what the kernels need: the prepared range map,
+the pose as ``p_S = M x_W + c``, and the reach map of the view test.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from . import _sampling
+from .certainty import NoiseModel
+from .errors import InvalidInputError, InvalidScanError
+from .filters import FILTERS, filter_range
+from .sensors import Sensor
+
+__all__ = ["NO_RETURN", "FusionParams", "PreparedScan", "Scan", "prepare_scan"]
+
+NO_RETURN = ("free", "invalid")
+#: Largest deviation of ``R^T R`` from the identity accepted in a pose.
+_ROTATION_TOLERANCE = 1e-5
+
+
+def check_pose(T_W_S: Any, field_name: str = "pose") -> np.ndarray:
+    """Validate a 4x4 rigid sensor-to-world transform; returns it as float64."""
+    try:
+        T = np.array(T_W_S, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidScanError(field_name, "must be a 4x4 array of numbers") from None
+    if T.shape != (4, 4):
+        raise InvalidScanError(field_name, f"must be 4x4, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise InvalidScanError(field_name, "has non-finite entries (NaN or inf)")
+    if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise InvalidScanError(field_name, f"last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    R = T[:3, :3]
+    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if err > _ROTATION_TOLERANCE:
+        raise InvalidScanError(
+            field_name,
+            f"is not rigid: its rotation is not orthonormal (max |R^T R - I| = {err:.3g}, "
+            f"tolerance {_ROTATION_TOLERANCE:g})",
+        )
+    if np.linalg.det(R) < 0.0:
+        raise InvalidScanError(field_name, "is a reflection (det R = -1), not a rotation")
+    return T
+
+
+@dataclass(frozen=True, eq=False)
+class Scan:
+    """One registered range map.
+
+    Parameters
+    ----------
+    range_m : array (H, W)
+        Ranges in metres in the sensor's range convention; ``+inf`` no return, NaN invalid.
+        Any floating dtype; stored as read-only float32.
+    T_W_S : array (4, 4)
+        Sensor-to-world pose, ``x_W = R p_S + t``; must be rigid.
+    sensor : Sensor
+        The sensor model; ``range_m.shape`` must be ``(sensor.height, sensor.width)``.
+    noise : NoiseModel or None
+        Overrides the scene's noise model for this scan.
+    """
+
+    range_m: np.ndarray
+    T_W_S: np.ndarray
+    sensor: Sensor
+    noise: NoiseModel | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.sensor, Sensor):
+            raise InvalidScanError("sensor", f"must be a Sensor, got {type(self.sensor).__name__}")
+        rng = self.range_m
+        if not isinstance(rng, np.ndarray):
+            raise InvalidScanError("range", f"must be a NumPy array, got {type(rng).__name__}")
+        if rng.dtype.kind != "f":
+            raise InvalidScanError(
+                "range",
+                f"must be a floating-point array of metres, got dtype {rng.dtype} "
+                "(convert depth units to metres; invalid pixels are NaN)",
+            )
+        if rng.ndim != 2:
+            raise InvalidScanError("range", f"must be a 2-D array (H x W), got shape {rng.shape}")
+        if rng.shape != self.sensor.shape:
+            raise InvalidScanError(
+                "range",
+                f"shape {rng.shape} does not match the sensor's height x width {self.sensor.shape}",
+            )
+        rng32 = np.ascontiguousarray(rng, dtype=np.float32)
+        with np.errstate(invalid="ignore"):
+            bad = int(np.count_nonzero(rng32 <= 0.0))
+        if bad:
+            raise InvalidScanError(
+                "range",
+                f"{bad} pixels are <= 0 or -inf; ranges are positive metres, "
+                "invalid pixels must be NaN",
+            )
+        if rng32 is rng:
+            rng32 = rng32.copy()
+        rng32.setflags(write=False)
+        object.__setattr__(self, "range_m", rng32)
+        T = check_pose(self.T_W_S)
+        T.setflags(write=False)
+        object.__setattr__(self, "T_W_S", T)
+        if self.noise is not None and not isinstance(self.noise, NoiseModel):
+            raise InvalidScanError(
+                "noise", f"must be a NoiseModel, got {type(self.noise).__name__}"
+            )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.sensor.shape
+
+    def points_W(self) -> np.ndarray:
+        """World points (n, 3) of the finite measurements (no-return and invalid pixels out)."""
+        v, u = np.nonzero(np.isfinite(self.range_m))
+        p_S = self.sensor.unproject(u, v, self.range_m[v, u])
+        R = self.T_W_S[:3, :3]
+        t = self.T_W_S[:3, 3]
+        return p_S @ R.T + t
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """How a scene turns scans into certainty (METHOD §1, §4 step 2).
+
+    Parameters
+    ----------
+    noise : NoiseModel
+        Default noise model; a scan's own ``noise`` overrides it.
+    filter : {"none", "mean5", "median3"}
+        Range-map filter applied before fusion.
+    max_discontinuity_m : float or None
+        Depth-discontinuity test: a point whose four neighbouring ranges spread by more gets
+        no information. ``None`` disables it.
+    no_return : {"free", "invalid"}
+        ``"free"``: a no-return pixel (``+inf``) is a measurement at the sensor's ``max_range``
+        and carves free space; ``"invalid"``: it is ignored.
+    """
+
+    noise: NoiseModel
+    filter: str = "none"
+    max_discontinuity_m: float | None = None
+    no_return: str = "free"
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.noise, NoiseModel):
+            raise InvalidInputError(
+                "noise", f"must be a NoiseModel, got {type(self.noise).__name__}"
+            )
+        if self.filter not in FILTERS:
+            raise InvalidInputError(
+                "filter", f"must be one of {', '.join(FILTERS)}, got {self.filter!r}"
+            )
+        if self.no_return not in NO_RETURN:
+            raise InvalidInputError(
+                "no_return", f"must be one of {', '.join(NO_RETURN)}, got {self.no_return!r}"
+            )
+        if self.max_discontinuity_m is not None:
+            value = self.max_discontinuity_m
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (math.isfinite(value) and value > 0.0)
+            ):
+                raise InvalidInputError(
+                    "max_discontinuity", f"must be a positive number of metres, got {value!r}"
+                )
+            object.__setattr__(self, "max_discontinuity_m", float(value))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "noise": self.noise.to_dict(),
+            "filter": self.filter,
+            "max_discontinuity_m": self.max_discontinuity_m,
+            "no_return": self.no_return,
+        }
+
+    @staticmethod
+    def from_dict(data: dict[str, Any]) -> FusionParams:
+        return FusionParams(
+            noise=NoiseModel.from_dict(data["noise"]),
+            filter=data.get("filter", "none"),
+            max_discontinuity_m=data.get("max_discontinuity_m"),
+            no_return=data.get("no_return", "free"),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class PreparedScan:
+    """A scan as the kernels take it (see :func:`prepare_scan`)."""
+
+    range_m: np.ndarray  # float32 (H, W): finite or NaN
+    surface_m: np.ndarray  # float32 (H, W): measured surface only (no-return pixels NaN)
+    kind: int
+    params: np.ndarray
+    table: np.ndarray
+    M: np.ndarray  # (3, 3) R^T: p_S = M @ x_W + c
+    c: np.ndarray  # (3,)
+    T_W_S: np.ndarray
+    eps0: float
+    eps1: float
+    rho: float
+    falloff: float  # < 0: eps at that range
+    shape: int
+    q_rho: int
+    max_disc: float  # < 0: no discontinuity test
+    reach: np.ndarray  # float64 (ceil(nqv / B), ceil(nqu / B)) block maxima of informed distance
+    reach_max: float  # -inf when the scan informs nothing
+
+    @property
+    def origin_W(self) -> np.ndarray:
+        return self.T_W_S[:3, 3]
+
+    def noise_args(self) -> tuple[float, float, float, float, int, int]:
+        return self.eps0, self.eps1, self.rho, self.falloff, self.shape, self.q_rho
+
+    def band_lo_hi(self, r: float, margin_m: float) -> tuple[float, float]:
+        """Distances ``[r - eps - margin, r + eps + falloff]`` of the surface band at range r."""
+        eps = self.eps0 + self.eps1 * r
+        f = self.falloff if self.falloff > 0.0 else eps
+        return r - eps - margin_m, r + eps + f
+
+
+def prepare_scan(scan: Scan, params: FusionParams) -> PreparedScan:
+    """Apply the filter and the no-return policy, and precompute what kernels need."""
+    rng = filter_range(scan.range_m, params.filter)
+    rng = np.array(rng, dtype=np.float32, copy=True)
+    no_return = np.isposinf(rng)
+    surface = rng.copy()
+    surface[no_return] = np.nan
+    surface.setflags(write=False)
+    if params.no_return == "free":
+        rng[no_return] = scan.sensor.max_range
+        rng.setflags(write=False)
+    else:
+        rng = surface
+    noise = scan.noise if scan.noise is not None else params.noise
+    eps0, eps1, rho, falloff, shape, q_rho = noise.kernel_args()
+    max_disc = -1.0 if params.max_discontinuity_m is None else params.max_discontinuity_m
+    kind, sensor_params, table = scan.sensor.kernel_args()
+    nqv = rng.shape[0] - 1
+    nqu = _sampling.quad_columns(kind, sensor_params)
+    B = _sampling.REACH_BLOCK
+    reach = np.empty((-(-nqv // B), -(-nqu // B)), np.float64)
+    _sampling.reach_blocks(kind, sensor_params, rng, eps0, eps1, falloff, max_disc, reach)
+    R = scan.T_W_S[:3, :3]
+    M = np.ascontiguousarray(R.T)
+    c = np.ascontiguousarray(-M @ scan.T_W_S[:3, 3])
+    return PreparedScan(
+        range_m=rng,
+        surface_m=surface,
+        kind=kind,
+        params=sensor_params,
+        table=table,
+        M=M,
+        c=c,
+        T_W_S=scan.T_W_S,
+        eps0=eps0,
+        eps1=eps1,
+        rho=rho,
+        falloff=falloff,
+        shape=shape,
+        q_rho=q_rho,
+        max_disc=max_disc,
+        reach=reach,
+        reach_max=float(reach.max()) if reach.size else -math.inf,
+    )

@@ -1,0 +1,166 @@
+"""Where tiles live: a small store protocol, its in-memory implementation, dense export.
+
+A tile is an int64 array ``(T, T, T)`` of packed voxels (see
+:mod:`engine.certainty`: fixed-point sum of log-odds and count of informing
+scans; 0 is *unknown*) plus the set of scan ids that *own* it, i.e. whose
+allocation (:func:`engine.tiling.tiles_touched`) includes it. A tile exists
+exactly while it has an owner. The Zarr store of :mod:`storage` implements the
+same protocol; both pass the same conformance tests.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from .certainty import decode_logodds
+from .errors import InvalidGridError
+from .grid import GridSpec
+
+__all__ = ["DenseGrid", "MemoryTileStore", "TileStore", "dense_logodds", "key_tuple"]
+
+#: Refuse to build dense grids above this many voxels (4 GB of float32).
+MAX_DENSE_VOXELS = 1 << 30
+
+
+def key_tuple(key: np.ndarray | Sequence[int]) -> tuple[int, int, int]:
+    return int(key[0]), int(key[1]), int(key[2])
+
+
+class TileStore(Protocol):
+    """Storage of tiles: packed voxel data and owners, by integer tile key."""
+
+    tile_size: int
+
+    def keys(self) -> np.ndarray:
+        """All tile keys, int64 (n, 3), sorted."""
+        ...
+
+    def read(self, keys: np.ndarray) -> np.ndarray:
+        """Voxel data of ``keys`` as int64 (n, T, T, T); a missing tile reads as unknown (0)."""
+        ...
+
+    def owners(self, keys: np.ndarray) -> list[frozenset[str]]:
+        """Owner scan ids of each tile (empty for a missing tile)."""
+        ...
+
+    def write(self, keys: np.ndarray, data: np.ndarray, owners: Sequence[frozenset[str]]) -> None:
+        """Create or replace tiles (each must have at least one owner)."""
+        ...
+
+    def delete(self, keys: np.ndarray) -> None:
+        """Remove tiles; missing ones are ignored."""
+        ...
+
+
+class MemoryTileStore:
+    """Tiles in a dict: the in-memory twin of the Zarr store."""
+
+    def __init__(self, tile_size: int) -> None:
+        self.tile_size = int(tile_size)
+        self._data: dict[tuple[int, int, int], np.ndarray] = {}
+        self._owners: dict[tuple[int, int, int], frozenset[str]] = {}
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def keys(self) -> np.ndarray:
+        if not self._data:
+            return np.zeros((0, 3), np.int64)
+        return np.array(sorted(self._data), dtype=np.int64).reshape(-1, 3)
+
+    def read(self, keys: np.ndarray) -> np.ndarray:
+        T = self.tile_size
+        out = np.zeros((len(keys), T, T, T), np.int64)
+        for n, key in enumerate(keys):
+            tile = self._data.get(key_tuple(key))
+            if tile is not None:
+                out[n] = tile
+        return out
+
+    def owners(self, keys: np.ndarray) -> list[frozenset[str]]:
+        return [self._owners.get(key_tuple(key), frozenset()) for key in keys]
+
+    def write(self, keys: np.ndarray, data: np.ndarray, owners: Sequence[frozenset[str]]) -> None:
+        T = self.tile_size
+        if data.shape != (len(keys), T, T, T) or data.dtype != np.int64:
+            raise ValueError(f"tile data must be int64 ({len(keys)}, {T}, {T}, {T})")
+        for key, tile, own in zip(keys, data, owners, strict=True):
+            if not own:
+                raise ValueError(f"tile {key_tuple(key)} needs at least one owner")
+            self._data[key_tuple(key)] = np.array(tile, copy=True)
+            self._owners[key_tuple(key)] = frozenset(own)
+
+    def delete(self, keys: np.ndarray) -> None:
+        for key in keys:
+            self._data.pop(key_tuple(key), None)
+            self._owners.pop(key_tuple(key), None)
+
+
+@dataclass(frozen=True, eq=False)
+class DenseGrid:
+    """A dense block of the fused volume (FORMAT.md ``--grid-out``).
+
+    ``logodds[i, j, k]`` (float32, NaN = unknown) is the voxel centred at
+    ``origin + (i, j, k) * voxel_size``; ``first_voxel`` is its global voxel index.
+    """
+
+    logodds: np.ndarray
+    origin: np.ndarray
+    voxel_size: float
+    first_voxel: np.ndarray
+
+
+def dense_logodds(
+    store: TileStore, grid: GridSpec, bounds_m: Sequence[float] | None = None
+) -> DenseGrid:
+    """Decode the tiles into a dense grid.
+
+    The grid covers the voxels whose centres lie in ``bounds_m``, else in the grid's region of
+    interest, else the bounding box of all tiles. Voxels in no tile are unknown (NaN).
+    """
+    T = store.tile_size
+    keys = store.keys()
+    if bounds_m is not None:
+        lo, hi = GridSpec(grid.voxel_size_m, T, "mapping", tuple(bounds_m)).roi_voxels()
+    elif grid.bounds_m is not None:
+        lo, hi = grid.roi_voxels()
+    elif len(keys):
+        lo = keys.min(axis=0) * T
+        hi = (keys.max(axis=0) + 1) * T
+    else:
+        lo = np.zeros(3, np.int64)
+        hi = np.zeros(3, np.int64)
+    shape = tuple(int(x) for x in hi - lo)
+    n_voxels = int(np.prod(shape, dtype=np.int64))
+    if n_voxels > MAX_DENSE_VOXELS:
+        raise InvalidGridError(
+            "bounds",
+            f"a dense grid of {shape[0]} x {shape[1]} x {shape[2]} voxels "
+            f"({4 * n_voxels / 2**30:.1f} GiB) is too large; give smaller bounds",
+        )
+    out = np.full(shape, np.nan, np.float32)
+    if len(keys):
+        first = keys * T
+        inside = np.all((first < hi) & (first + T > lo), axis=1)
+        for key, tile in zip(keys[inside], store.read(keys[inside]), strict=True):
+            a0 = key * T
+            src_lo = np.maximum(lo - a0, 0)
+            src_hi = np.minimum(hi - a0, T)
+            dst_lo = a0 + src_lo - lo
+            dst_hi = a0 + src_hi - lo
+            out[dst_lo[0] : dst_hi[0], dst_lo[1] : dst_hi[1], dst_lo[2] : dst_hi[2]] = (
+                decode_logodds(
+                    tile[src_lo[0] : src_hi[0], src_lo[1] : src_hi[1], src_lo[2] : src_hi[2]]
+                )
+            )
+    h = grid.voxel_size_m
+    return DenseGrid(
+        logodds=out,
+        origin=(lo.astype(np.float64) + 0.5) * h,
+        voxel_size=h,
+        first_voxel=lo.astype(np.int64),
+    )

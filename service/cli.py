@@ -1,0 +1,312 @@
+"""The ``rangefuse`` command line.
+
+``rangefuse synth`` writes analytic test scenes as dataset folders;
+``rangefuse fuse`` fuses a dataset folder into a volume (and, with
+``--grid-out``, writes it densely for NumPy tools). Bad input ends with exit
+status 2 and a message that names the problem.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from engine import (
+    FILTERS,
+    MODES,
+    NO_RETURN,
+    FusionParams,
+    GridSpec,
+    InvalidInputError,
+    NoiseModel,
+    Scan,
+    Volume,
+)
+from engine.certainty import SHAPES
+from engine.defaults import EPS_PER_VOXEL, RHO, TILE_SIZE_VOX
+from storage import DatasetError, open_dataset, write_dataset, write_grid
+
+from ._progress import ProgressBar
+
+__all__ = ["main"]
+
+
+class CommandError(Exception):
+    """A user error: printed as ``rangefuse CMD: error: MESSAGE``, exit status 2."""
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(value) and value > 0.0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return value
+
+
+def _finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
+    return value
+
+
+# --- synth ------------------------------------------------------------------------------------
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from engine.synth import make_dataset, parse_noise
+
+    noise = parse_noise(args.noise)
+    t0 = time.perf_counter()
+    data = make_dataset(
+        args.scene, views=args.views, noise=noise, seed=args.seed, length_m=args.length
+    )
+    scene_json = json.dumps(
+        {
+            "scene": data.name,
+            "bounds_m": list(data.bounds_m),
+            "noise": args.noise,
+            "seed": args.seed,
+            "solids": data.scene.to_dict(),
+        },
+        indent=1,
+    )
+    out = write_dataset(args.out, data.sensor, data.scans, {"scene.json": scene_json + "\n"})
+    print(
+        f"wrote {len(data.scans)} {data.sensor.model} scans of the {data.name} scene to {out} "
+        f"in {time.perf_counter() - t0:.1f} s; region of interest "
+        f"{' '.join(f'{b:g}' for b in data.bounds_m)}"
+    )
+    return 0
+
+
+# --- fuse -------------------------------------------------------------------------------------
+
+
+def _noise_from_args(args: argparse.Namespace) -> NoiseModel:
+    eps = args.eps if args.eps is not None else EPS_PER_VOXEL * args.voxel_size
+    return NoiseModel(
+        eps_m=eps, eps_per_m=args.eps_per_m, rho=args.rho, falloff_m=args.falloff, shape=args.shape
+    )
+
+
+def _bounds_from_data(scans: Sequence[Scan], noise: NoiseModel, voxel_size: float) -> tuple:
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    max_range = 0.0
+    for scan in scans:
+        pts = scan.points_W()
+        if len(pts):
+            lo = np.minimum(lo, pts.min(axis=0))
+            hi = np.maximum(hi, pts.max(axis=0))
+            max_range = max(max_range, float(np.nanmax(scan.range_m[np.isfinite(scan.range_m)])))
+    if not np.all(np.isfinite(lo)):
+        raise CommandError("closed mode: no scan has a measured point; give --bounds")
+    pad = 2.0 * (noise.eps_m + noise.eps_per_m * max_range) + 2.0 * voxel_size
+    return tuple(float(x) for x in np.concatenate([lo - pad, hi + pad]))
+
+
+def _cmd_fuse(args: argparse.Namespace) -> int:
+    dataset = open_dataset(args.dataset)
+    noise = _noise_from_args(args)
+    params = FusionParams(
+        noise=noise,
+        filter=args.filter,
+        max_discontinuity_m=args.max_discontinuity,
+        no_return=args.no_return,
+    )
+    GridSpec(args.voxel_size, args.tile_size, "mapping", args.bounds)  # validate early
+    t0 = time.perf_counter()
+    scans = list(dataset.scans())
+    bounds = tuple(args.bounds) if args.bounds is not None else None
+    if args.mode == "closed" and bounds is None:
+        bounds = _bounds_from_data([s for _, s in scans], noise, args.voxel_size)
+        if not args.quiet:
+            print(
+                "closed mode: region of interest from the data: "
+                + " ".join(f"{b:.4g}" for b in bounds),
+                file=sys.stderr,
+            )
+    grid = GridSpec(args.voxel_size, args.tile_size, args.mode, bounds)
+    volume = Volume(grid, params)
+    bar = ProgressBar("fuse", enabled=not args.quiet)
+    try:
+        report = volume.add_many(scans, progress=bar)
+    finally:
+        bar.close()
+    elapsed = time.perf_counter() - t0
+    n_tiles = len(volume.tile_keys())
+    print(
+        f"fused {report.scans} scans into {n_tiles} tiles of {grid.tile_size_vox}^3 voxels "
+        f"({report.voxel_updates:,} voxel updates) in {elapsed:.2f} s"
+    )
+    if args.grid_out is not None:
+        dense = volume.to_dense(args.bounds)
+        write_grid(args.grid_out, dense)
+        print(f"wrote {'x'.join(map(str, dense.logodds.shape))} grid to {args.grid_out}")
+    return 0
+
+
+# --- parser -----------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="rangefuse",
+        description="Fuse registered range scans into 3D models (certainty fusion, "
+        "Elsner, Whitaker & Abidi 1999).",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    synth = sub.add_parser("synth", help="write an analytic test scene as a dataset folder")
+    synth.add_argument("scene", choices=("object", "room", "street"))
+    synth.add_argument("out", type=Path, metavar="OUT", help="dataset folder to write")
+    synth.add_argument(
+        "--views",
+        type=_positive_int,
+        default=None,
+        help="number of scans (default: 12 object, 100 room, one per 2 m street)",
+    )
+    synth.add_argument(
+        "--noise",
+        default="none",
+        help="comma-separated noise: uniform:M, gaussian:M, spikes:FRACTION, "
+        "dropouts:FRACTION, background:inf|nan (default: none)",
+    )
+    synth.add_argument("--seed", type=int, default=0, help="seed of the noise (default 0)")
+    synth.add_argument(
+        "--length",
+        type=_positive_float,
+        default=None,
+        help="street length in metres (street only; default 40)",
+    )
+    synth.set_defaults(func=_cmd_synth)
+
+    fuse = sub.add_parser("fuse", help="fuse a dataset folder into a volume")
+    fuse.add_argument("dataset", type=Path, metavar="DATASET")
+    fuse.add_argument(
+        "--voxel-size",
+        type=_positive_float,
+        required=True,
+        metavar="M",
+        help="voxel edge in metres",
+    )
+    fuse.add_argument(
+        "--bounds",
+        type=_finite_float,
+        nargs=6,
+        default=None,
+        metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
+        help="region of interest in world metres (closed mode: default from the data)",
+    )
+    fuse.add_argument(
+        "--mode",
+        choices=MODES,
+        default="mapping",
+        help="mapping: tiles near surfaces, open meshes; closed: the region of "
+        "interest, closed meshes (default mapping)",
+    )
+    fuse.add_argument(
+        "--tile-size",
+        type=_positive_int,
+        default=TILE_SIZE_VOX,
+        metavar="N",
+        help=f"voxels per tile edge (default {TILE_SIZE_VOX})",
+    )
+    fuse.add_argument(
+        "--eps",
+        type=_positive_float,
+        default=None,
+        metavar="M",
+        help=f"noise half-width in metres (default {EPS_PER_VOXEL:g} voxels)",
+    )
+    fuse.add_argument(
+        "--eps-per-m",
+        type=float,
+        default=0.0,
+        metavar="F",
+        help="growth of the noise half-width per metre of range (default 0)",
+    )
+    fuse.add_argument(
+        "--rho",
+        type=float,
+        default=RHO,
+        metavar="P",
+        help=f"outlier probability, 0 < P < 1/2 (default {RHO})",
+    )
+    fuse.add_argument(
+        "--falloff",
+        type=_positive_float,
+        default=None,
+        metavar="M",
+        help="fall-off behind the surface in metres (default: eps)",
+    )
+    fuse.add_argument(
+        "--shape", choices=SHAPES, default="linear", help="certainty ramp (default linear)"
+    )
+    fuse.add_argument(
+        "--filter", choices=FILTERS, default="none", help="range-map filter (default none)"
+    )
+    fuse.add_argument(
+        "--max-discontinuity",
+        type=_positive_float,
+        default=None,
+        metavar="M",
+        help="ignore points whose four neighbouring ranges spread by more",
+    )
+    fuse.add_argument(
+        "--no-return",
+        choices=NO_RETURN,
+        default="free",
+        help="no-return pixels carve free space up to max_range (free, default) "
+        "or are ignored (invalid)",
+    )
+    fuse.add_argument(
+        "--grid-out",
+        type=Path,
+        default=None,
+        metavar="GRID.npz",
+        help="write the fused log-odds densely (FORMAT.md; NaN = unknown)",
+    )
+    fuse.add_argument("--quiet", action="store_true", help="no progress bar")
+    fuse.set_defaults(func=_cmd_fuse)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except (CommandError, InvalidInputError, DatasetError) as exc:
+        print(f"rangefuse {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"rangefuse {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,293 @@
+"""Fusion: agreement with the dense reference, order independence, exact removal."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from engine import (
+    FusionParams,
+    GridSpec,
+    InvalidGridError,
+    InvalidInputError,
+    InvalidScanError,
+    NoiseModel,
+    Scan,
+    ScanNotFoundError,
+    Volume,
+    decode_count,
+    decode_logodds,
+)
+from engine.defaults import LOGIT_SCALE
+from tests import reference, scenes
+
+H = 0.02  # voxel size of the small scene
+
+
+def _params(**kwargs) -> FusionParams:
+    noise = kwargs.pop("noise", NoiseModel(eps_m=0.03, rho=0.08))
+    return FusionParams(noise=noise, **kwargs)
+
+
+def _dense_packed(volume: Volume, lo: np.ndarray, shape: tuple[int, ...]):
+    """Packed voxels over [lo, lo + shape) and a mask of voxels inside allocated tiles."""
+    T = volume.grid.tile_size_vox
+    packed = np.zeros(shape, np.int64)
+    allocated = np.zeros(shape, bool)
+    keys = volume.tile_keys()
+    for key, tile in zip(keys, volume.store.read(keys), strict=True):
+        a0 = key * T
+        s_lo = np.maximum(lo - a0, 0)
+        s_hi = np.minimum(lo + shape - a0, T)
+        if np.any(s_hi <= s_lo):
+            continue
+        d_lo = a0 + s_lo - lo
+        d_hi = a0 + s_hi - lo
+        dst = tuple(slice(d_lo[i], d_hi[i]) for i in range(3))
+        packed[dst] = tile[tuple(slice(s_lo[i], s_hi[i]) for i in range(3))]
+        allocated[dst] = True
+    return packed, allocated
+
+
+def _compare_with_reference(volume: Volume, scans: list[tuple[str, Scan]], bounds=scenes.BOUNDS):
+    grid = GridSpec(volume.grid.voxel_size_m, volume.grid.tile_size_vox, "mapping", bounds)
+    lo, hi = grid.roi_voxels()
+    shape = tuple(int(x) for x in hi - lo)
+    ref = reference.fuse([s for _, s in scans], volume.params, lo, shape, volume.grid.voxel_size_m)
+    packed, allocated = _dense_packed(volume, lo, shape)
+    count = decode_count(packed)
+    L = decode_logodds(packed)
+    # inside allocated tiles: the same informed voxels, the same log-odds within quantisation
+    assert np.array_equal(count[allocated], ref.count[allocated])
+    inf = allocated & (count > 0)
+    tol = count[inf] * 0.5 / LOGIT_SCALE + 1e-6 * np.abs(ref.logodds[inf]) + 1e-6
+    err = np.abs(L[inf] - ref.logodds[inf])
+    assert np.all(err <= tol), f"max error {err.max()} at tolerance {tol[np.argmax(err - tol)]}"
+    # outside allocated tiles: nothing of the surface band is missing
+    assert not np.any(ref.band & ~allocated), "band voxels outside allocated tiles"
+    if volume.grid.mode == "closed":
+        # closed mode allocates every tile in view: no informed voxel is left out
+        assert not np.any((ref.count > 0) & ~allocated)
+    return ref, count
+
+
+@pytest.mark.parametrize("name", sorted(scenes.SENSORS))
+@pytest.mark.parametrize("mode", ["mapping", "closed"])
+def test_matches_dense_reference(name: str, mode: str) -> None:
+    scans = scenes.scans(name, 4)
+    volume = Volume(GridSpec(H, 8, mode, scenes.BOUNDS), _params())
+    volume.add_many(scans)
+    assert len(volume.tile_keys()) > 0
+    ref, _ = _compare_with_reference(volume, scans)
+    assert (ref.count > 0).sum() > 1000, "the scene should inform a good part of the grid"
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"noise": NoiseModel(eps_m=0.02, rho=0.1, shape="erf")},
+        {"noise": NoiseModel(eps_m=0.01, eps_per_m=0.02, rho=0.05, falloff_m=0.05)},
+        {"filter": "mean5"},
+        {"filter": "median3"},
+        {"max_discontinuity_m": 0.05},
+        {"no_return": "invalid"},
+    ],
+    ids=["erf", "eps_per_m+falloff", "mean5", "median3", "discontinuity", "no_return_invalid"],
+)
+def test_options_match_dense_reference(options: dict) -> None:
+    scans = scenes.scans("pinhole_ray", 3) + scenes.scans("spherical", 2)
+    volume = Volume(GridSpec(H, 8, "closed", scenes.BOUNDS), _params(**options))
+    volume.add_many(scans)
+    _compare_with_reference(volume, scans)
+
+
+def test_per_scan_noise_override_matches_reference() -> None:
+    scans = scenes.scans("pinhole_z", 3)
+    name, first = scans[0]
+    scans[0] = (name, Scan(first.range_m, first.T_W_S, first.sensor,
+                           noise=NoiseModel(eps_m=0.06, rho=0.2)))
+    volume = Volume(GridSpec(H, 8, "closed", scenes.BOUNDS), _params())
+    volume.add_many(scans)
+    _compare_with_reference(volume, scans)
+
+
+def _state(volume: Volume):
+    keys = volume.tile_keys()
+    return keys, volume.store.read(keys), volume.store.owners(keys)
+
+
+def _assert_same(a: Volume, b: Volume) -> None:
+    ka, da, oa = _state(a)
+    kb, db, ob = _state(b)
+    assert np.array_equal(ka, kb)
+    assert np.array_equal(da, db)
+    assert oa == ob
+
+
+MIXED = scenes.scans("pinhole_ray", 3) + scenes.scans("spherical", 2) + scenes.scans("linescan", 1)
+
+
+@settings(max_examples=12, deadline=None)
+@given(order=st.permutations(range(len(MIXED))), mode=st.sampled_from(["mapping", "closed"]))
+def test_order_does_not_change_the_volume(order: list[int], mode: str) -> None:
+    grid = GridSpec(H, 8, mode, scenes.BOUNDS)
+    batch = Volume(grid, _params())
+    batch.add_many(MIXED)
+    one_by_one = Volume(grid, _params())
+    for k in order:
+        one_by_one.add(*MIXED[k])
+    _assert_same(batch, one_by_one)
+
+
+def test_late_tiles_receive_earlier_scans_and_new_scans_carve_old_tiles() -> None:
+    # Two cameras on opposite sides: B's surface tiles lie in free space that A saw through
+    # and A's surface tiles lie in B's free space (mapping mode, no bounds).
+    scans = scenes.scans("pinhole_ray", 2)
+    grid = GridSpec(H, 8, "mapping")
+    a = Volume(grid, _params())
+    a.add(*scans[0])
+    keys_a = a.tile_keys()
+    report = a.add(*scans[1])
+    assert len(report.created) > 0
+    # a tile that only B created received A's contribution too ...
+    both = Volume(grid, _params())
+    both.add_many(scans)
+    _assert_same(a, both)
+    only_b = Volume(grid, _params())
+    only_b.add(*scans[1])
+    kb, db, _ = _state(only_b)
+    rows = [i for i, k in enumerate(kb) if not any((k == keys_a).all(1))]
+    keys_all, data_all, _ = _state(both)
+    idx = {tuple(k): i for i, k in enumerate(keys_all)}
+    differs = [not np.array_equal(db[i], data_all[idx[tuple(kb[i])]]) for i in rows]
+    assert any(differs), "no late tile received the earlier scan"
+    # ... and B changed tiles that only A touched (it sees through them)
+    changed = {tuple(k) for k in report.changed}
+    assert any(tuple(k) in changed for k in keys_a)
+
+
+@pytest.mark.parametrize("mode", ["mapping", "closed"])
+def test_removal_restores_the_volume_exactly(mode: str) -> None:
+    grid = GridSpec(H, 8, mode, scenes.BOUNDS)
+    deleted = 0
+    for k, (scan_id, scan) in enumerate(MIXED):
+        volume = Volume(grid, _params())
+        volume.add_many(MIXED)
+        report = volume.remove(scan_id)
+        without = Volume(grid, _params())
+        without.add_many([item for j, item in enumerate(MIXED) if j != k])
+        _assert_same(volume, without)
+        assert scan_id not in volume
+        deleted += len(report.deleted)
+        volume.add(scan_id, scan)  # re-adding restores the full volume
+        full = Volume(grid, _params())
+        full.add_many(MIXED)
+        _assert_same(volume, full)
+    assert deleted > 0 or mode == "closed", "some scan should own tiles alone"
+
+
+def test_removing_every_scan_leaves_nothing() -> None:
+    volume = Volume(GridSpec(H, 8, "mapping"), _params())
+    volume.add_many(MIXED)
+    for scan_id, _ in MIXED:
+        volume.remove(scan_id)
+    assert len(volume.tile_keys()) == 0
+
+
+def test_thread_count_does_not_change_the_volume() -> None:
+    grid = GridSpec(H, 8, "closed", scenes.BOUNDS)
+    previous = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = Volume(grid, _params())
+        one.add_many(MIXED)
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+        many = Volume(grid, _params())
+        many.add_many(MIXED)
+    finally:
+        numba.set_num_threads(previous)
+    _assert_same(one, many)
+
+
+def test_unknown_stays_distinct_and_free_space_is_negative() -> None:
+    scans = scenes.scans("pinhole_ray", 4)
+    volume = Volume(GridSpec(H, 8, "closed", scenes.BOUNDS), _params())
+    volume.add_many(scans)
+    dense = volume.to_dense()
+    L = dense.logodds
+    assert np.isnan(L).any() and (L < 0).any() and (L > 0).any()
+    # the centre of the box is never seen: unknown, not zero
+    centre = np.round((np.array([0.05, -0.05, -0.1]) - dense.origin) / H).astype(int)
+    assert np.isnan(L[tuple(centre)])
+    # a corner of the region of interest far from everything is free
+    assert L[0, 0, -1] < 0
+
+
+def test_grid_spec_errors() -> None:
+    with pytest.raises(InvalidGridError, match="^voxel_size:"):
+        GridSpec(0.0)
+    with pytest.raises(InvalidGridError, match="^voxel_size:"):
+        GridSpec(float("nan"))
+    with pytest.raises(InvalidGridError, match="^tile_size:"):
+        GridSpec(0.01, 2)
+    with pytest.raises(InvalidGridError, match="^mode:"):
+        GridSpec(0.01, 16, "open")
+    with pytest.raises(InvalidGridError, match="^bounds: closed mode needs"):
+        GridSpec(0.01, 16, "closed")
+    with pytest.raises(InvalidGridError, match="^bounds: x0 must be less than x1"):
+        GridSpec(0.01, 16, "closed", (1, 0, 0, 0, 1, 1))
+    with pytest.raises(InvalidGridError, match="^bounds: must be six"):
+        GridSpec(0.01, 16, "closed", (0, 0, 0, 1, 1))
+    with pytest.raises(InvalidGridError, match="^bounds: the box holds no voxel centre"):
+        GridSpec(1.0, 16, "closed", (0.1, 0.1, 0.1, 0.2, 0.2, 0.2))
+
+
+def test_scan_errors() -> None:
+    _, good = scenes.scans("pinhole_ray", 1)[0]
+    s, rng, T = good.sensor, good.range_m, good.T_W_S
+    cases = [
+        (dict(range_m=np.zeros(rng.shape, np.int16)), "range", "floating-point"),
+        (dict(range_m=rng[:, :-1]), "range", "does not match the sensor"),
+        (dict(range_m=rng[None]), "range", "2-D"),
+        (dict(range_m=np.where(np.isfinite(rng), -rng, rng)), "range", "<= 0"),
+        (dict(range_m=list(rng)), "range", "NumPy array"),
+        (dict(T_W_S=np.full((4, 4), np.nan)), "pose", "non-finite"),
+        (dict(T_W_S=np.eye(3)), "pose", "4x4"),
+        (dict(T_W_S=np.diag([2.0, 1.0, 1.0, 1.0])), "pose", "not rigid"),
+        (dict(T_W_S=np.diag([-1.0, 1.0, 1.0, 1.0])), "pose", "reflection"),
+        (dict(T_W_S=np.vstack([T[:3], [0, 0, 1, 1]])), "pose", "last row"),
+        (dict(sensor="pinhole"), "sensor", "must be a Sensor"),
+    ]
+    for change, field, words in cases:
+        kwargs = dict(range_m=rng, T_W_S=T, sensor=s) | change
+        with pytest.raises(InvalidScanError) as info:
+            Scan(**kwargs)
+        assert str(info.value).startswith(field + ":"), str(info.value)
+        assert words in str(info.value), str(info.value)
+
+
+def test_volume_errors() -> None:
+    scans = scenes.scans("pinhole_ray", 1)
+    volume = Volume(GridSpec(H, 8), _params())
+    volume.add_many(scans)
+    with pytest.raises(InvalidInputError, match="already in the volume"):
+        volume.add(*scans[0])
+    with pytest.raises(InvalidInputError, match="^scan_id:"):
+        volume.add("", scans[0][1])
+    with pytest.raises(InvalidInputError, match="^scan:"):
+        volume.add("x", "not a scan")  # type: ignore[arg-type]
+    with pytest.raises(ScanNotFoundError):
+        volume.remove("nope")
+    with pytest.raises(InvalidInputError, match="^filter:"):
+        _params(filter="blur")
+    with pytest.raises(InvalidInputError, match="^no_return:"):
+        _params(no_return="maybe")
+    with pytest.raises(InvalidInputError, match="^max_discontinuity:"):
+        _params(max_discontinuity_m=-1.0)
+    # a failed add leaves the volume as it was
+    keys_before = volume.tile_keys()
+    assert np.array_equal(keys_before, volume.tile_keys())
+    assert volume.scan_ids == [scans[0][0]]
