@@ -33,7 +33,7 @@ lint: install
 	$(BIN)/ruff format --check .
 
 types: install
-	$(BIN)/mypy storage service
+	$(BIN)/mypy engine storage service
 
 check: lint types test
 

@@ -66,17 +66,26 @@ def main() -> None:
             for v in (0.02, 0.01)
             for t in (8, 16, 32)
         ]
-    header = (f"{'mode':8} {'voxel':>6} {'tile':>4} {'frames':>6} {'time s':>7} {'frames/s':>8} "
-              f"{'Mupd/s':>7} {'tiles':>7} {'tiles MB':>8} {'peak RSS MB':>11}")
+    header = (
+        f"{'mode':8} {'voxel':>6} {'tile':>4} {'frames':>6} {'time s':>7} {'frames/s':>8} "
+        f"{'Mupd/s':>7} {'tiles':>7} {'tiles MB':>8} {'peak RSS MB':>11}"
+    )
     print(header)
     print("-" * len(header))
     for cfg in configs:
-        out = subprocess.run([sys.executable, __file__, "--child", json.dumps(cfg)],
-                             capture_output=True, text=True, check=True)
+        out = subprocess.run(
+            [sys.executable, __file__, "--child", json.dumps(cfg)],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
         r = json.loads(out.stdout.strip().splitlines()[-1])
-        print(f"{r['mode']:8} {r['voxel']:6.3f} {r['tile']:4d} {r['frames']:6d} "
-              f"{r['seconds']:7.2f} {r['fps']:8.2f} {r['ups'] / 1e6:7.1f} {r['tiles']:7d} "
-              f"{r['tile_mb']:8.1f} {r['rss_mb']:11.0f}", flush=True)
+        print(
+            f"{r['mode']:8} {r['voxel']:6.3f} {r['tile']:4d} {r['frames']:6d} "
+            f"{r['seconds']:7.2f} {r['fps']:8.2f} {r['ups'] / 1e6:7.1f} {r['tiles']:7d} "
+            f"{r['tile_mb']:8.1f} {r['rss_mb']:11.0f}",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -16,8 +16,8 @@ from numba import njit, prange
 
 from ._sensor_kernels import P_H, P_W, in_image, wraps
 
-#: Quads per side of a block of the reach map used by the view test.
-REACH_BLOCK = 8
+#: Quads per side of a block of the maps used by the tile tests.
+QUAD_BLOCK = 8
 
 
 @njit(cache=True, inline="always")
@@ -90,27 +90,34 @@ def quad_ranges(rng, qu, qv, max_disc):
 
 
 @njit(cache=True, parallel=True)
-def reach_blocks(kind, params, rng, eps0, eps1, falloff, max_disc, out):
-    """Block maxima of the farthest informed distance of each quad.
+def quad_blocks(kind, params, rng, eps0, eps1, falloff, max_disc, reach, near, valid):
+    """Statistics of blocks of ``QUAD_BLOCK`` x ``QUAD_BLOCK`` pixel quads for tile tests.
 
-    A point whose interpolated range is ``r`` is informed up to ``d = r + eps(r) + f(r)``,
-    which grows with ``r``, so a quad informs nothing beyond the value for its largest
-    corner. ``out`` has one cell per ``REACH_BLOCK`` x ``REACH_BLOCK`` quads, ``-inf`` where
-    no quad of the block is valid.
+    * ``reach``: the farthest informed distance of any quad in the block. A point whose
+      interpolated range is ``r`` is informed up to ``d = r + eps(r) + f(r)``, which grows
+      with ``r``, so a quad informs nothing beyond the value for its largest corner;
+      ``-inf`` where no quad of the block is valid.
+    * ``near``: the smallest corner range of the block's valid quads (``+inf`` if none).
+    * ``valid``: whether every quad of the block is valid (informs the points it covers).
     """
     nqv = rng.shape[0] - 1
     nqu = quad_columns(kind, params)
-    for bv in prange(out.shape[0]):
-        for bu in range(out.shape[1]):
-            best = -np.inf
-            for qv in range(bv * REACH_BLOCK, min(nqv, (bv + 1) * REACH_BLOCK)):
-                for qu in range(bu * REACH_BLOCK, min(nqu, (bu + 1) * REACH_BLOCK)):
+    for bv in prange(reach.shape[0]):
+        for bu in range(reach.shape[1]):
+            far = -np.inf
+            close = np.inf
+            all_valid = True
+            for qv in range(bv * QUAD_BLOCK, min(nqv, (bv + 1) * QUAD_BLOCK)):
+                for qu in range(bu * QUAD_BLOCK, min(nqu, (bu + 1) * QUAD_BLOCK)):
                     r00, r01, r10, r11, ok = quad_ranges(rng, qu, qv, max_disc)
                     if not ok:
+                        all_valid = False
                         continue
                     r = max(max(r00, r01), max(r10, r11))
                     eps = eps0 + eps1 * r
                     f = falloff if falloff > 0.0 else eps
-                    if r + eps + f > best:
-                        best = r + eps + f
-            out[bv, bu] = best
+                    far = max(far, r + eps + f)
+                    close = min(close, min(min(r00, r01), min(r10, r11)))
+            reach[bv, bu] = far
+            near[bv, bu] = close
+            valid[bv, bu] = all_valid

@@ -144,6 +144,22 @@ def project_point(kind, params, table, x, y, z):
 
 
 @njit(cache=True)
+def distance(kind, params, x, y, z):
+    """The range ``d`` of a sensor-frame point in the sensor's convention (pixel or not)."""
+    if kind == PINHOLE:
+        if params[P_Z_CONV] != 0.0:
+            return z
+        return math.sqrt(x * x + y * y + z * z)
+    if kind == SPHERICAL:
+        return math.sqrt(x * x + y * y + z * z)
+    if kind == CYLINDRICAL:
+        if params[P_RADIAL] != 0.0:
+            return math.sqrt(x * x + y * y)
+        return math.sqrt(x * x + y * y + z * z)
+    return z
+
+
+@njit(cache=True)
 def unproject_point(kind, params, table, u, v, d):
     """(u, v, d) -> sensor-frame point; nan where no point has that range."""
     nan = math.nan

@@ -15,6 +15,7 @@ integrate) with the same result.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -25,9 +26,9 @@ from . import _sensor_kernels as _k
 from ._sampling import sample_range
 from .certainty import contribution, pack
 from .errors import InvalidInputError, ScanNotFoundError
-from .grid import GridSpec
+from .grid import GridSpec, pack_keys, unique_keys
 from .scans import FusionParams, PreparedScan, Scan, prepare_scan
-from .tiling import tiles_in_view, tiles_touched
+from .tiling import FREE, OUT, classify_tiles, tiles_touched
 from .volume import DenseGrid, MemoryTileStore, TileStore, dense_logodds
 
 __all__ = ["IntegrationReport", "Volume", "integrate_tiles"]
@@ -35,61 +36,84 @@ __all__ = ["IntegrationReport", "Volume", "integrate_tiles"]
 Progress = Callable[[int, int], None]
 
 
-@njit(cache=True, parallel=True)
-def _integrate(
-    keys,
-    data,
-    rows,
-    sign,
-    T,
-    h,
-    M,
-    c,
-    kind,
-    params,
-    table,
-    rng,
-    eps0,
-    eps1,
-    rho,
-    falloff,
-    shape,
-    q_rho,
-    max_disc,
-    informed,
-):
-    """Add ``sign`` times one scan's contribution to the tiles ``data[rows]``.
+@functools.cache
+def _integrate_kernel(kind: int, shape: int):
+    """The fusion kernel compiled for one sensor kind and certainty shape.
 
-    ``informed[row]`` receives the number of voxels of each tile the scan informs.
+    ``kind`` and ``shape`` are closure constants, so the compiler drops every branch of
+    the other models from the innermost loop (about 4x faster than one kernel that tests
+    them per voxel).
     """
-    for n in prange(rows.shape[0]):
-        row = rows[n]
-        count = 0
-        i0 = keys[row, 0] * T
-        j0 = keys[row, 1] * T
-        k0 = keys[row, 2] * T
-        for a in range(T):
-            x = ((i0 + a) + 0.5) * h
-            for b in range(T):
-                y = ((j0 + b) + 0.5) * h
-                bx = M[0, 0] * x + M[0, 1] * y + c[0]
-                by = M[1, 0] * x + M[1, 1] * y + c[1]
-                bz = M[2, 0] * x + M[2, 1] * y + c[2]
-                for cc in range(T):
-                    z = ((k0 + cc) + 0.5) * h
-                    u, v, d = _k.project_point(
-                        kind, params, table, bx + M[0, 2] * z, by + M[1, 2] * z, bz + M[2, 2] * z
-                    )
-                    if u != u:
-                        continue
-                    r, ok = sample_range(kind, params, rng, u, v, max_disc)
-                    if not ok:
-                        continue
-                    q, inf = contribution(d - r, r, eps0, eps1, rho, falloff, shape, q_rho)
-                    if inf:
-                        data[row, a, b, cc] += sign * pack(q)
-                        count += 1
-        informed[row] = count
+
+    @njit(cache=True, parallel=True)
+    def integrate(
+        keys,
+        data,
+        rows,
+        free,
+        sign,
+        T,
+        h,
+        M,
+        c,
+        params,
+        table,
+        rng,
+        eps0,
+        eps1,
+        rho,
+        falloff,
+        q_rho,
+        max_disc,
+        informed,
+    ):
+        # Add ``sign`` times one scan's contribution to the tiles ``data[rows]``;
+        # ``informed[row]`` receives the number of voxels of each tile the scan informs.
+        # A tile with ``free[n]`` is known to be free space throughout (classify_tiles):
+        # every voxel receives logit(rho), exactly what the voxel loop would add.
+        for n in prange(rows.shape[0]):
+            row = rows[n]
+            if free[n]:
+                value = sign * pack(q_rho)
+                for a in range(T):
+                    for b in range(T):
+                        for cc in range(T):
+                            data[row, a, b, cc] += value
+                informed[row] = T * T * T
+                continue
+            count = 0
+            i0 = keys[row, 0] * T
+            j0 = keys[row, 1] * T
+            k0 = keys[row, 2] * T
+            for a in range(T):
+                x = ((i0 + a) + 0.5) * h
+                for b in range(T):
+                    y = ((j0 + b) + 0.5) * h
+                    bx = M[0, 0] * x + M[0, 1] * y + c[0]
+                    by = M[1, 0] * x + M[1, 1] * y + c[1]
+                    bz = M[2, 0] * x + M[2, 1] * y + c[2]
+                    for cc in range(T):
+                        z = ((k0 + cc) + 0.5) * h
+                        u, v, d = _k.project_point(
+                            kind,
+                            params,
+                            table,
+                            bx + M[0, 2] * z,
+                            by + M[1, 2] * z,
+                            bz + M[2, 2] * z,
+                        )
+                        if u != u:
+                            continue
+                        r, ok = sample_range(kind, params, rng, u, v, max_disc)
+                        if not ok:
+                            continue
+                        q, inf = contribution(d - r, r, eps0, eps1, rho, falloff, shape, q_rho)
+                        if inf:
+                            data[row, a, b, cc] += sign * pack(q)
+                            count += 1
+            informed[row] = count
+
+    return integrate
 
 
 def integrate_tiles(
@@ -101,6 +125,9 @@ def integrate_tiles(
     sign: int = 1,
 ) -> np.ndarray:
     """Add (``sign=1``) or subtract (``sign=-1``) one scan's contribution to tiles, in place.
+
+    Tiles out of the scan's view are skipped; tiles it sees as free space throughout take a
+    constant (see :func:`engine.tiling.classify_tiles`); the others are fused voxel by voxel.
 
     Parameters
     ----------
@@ -119,24 +146,43 @@ def integrate_tiles(
         Voxels informed per tile (0 for rows not processed).
     """
     keys = np.ascontiguousarray(keys, np.int64)
-    if rows is None:
-        rows = np.arange(len(keys), dtype=np.int64)
+    rows = np.arange(len(keys), dtype=np.int64) if rows is None else np.asarray(rows, np.int64)
+    status = classify_tiles(scan, grid, keys[rows])
+    seen = status != OUT
+    return _integrate_seen(scan, grid, keys, data, rows[seen], status[seen] == FREE, sign)
+
+
+def _integrate_seen(
+    scan: PreparedScan,
+    grid: GridSpec,
+    keys: np.ndarray,
+    data: np.ndarray,
+    rows: np.ndarray,
+    free: np.ndarray,
+    sign: int,
+) -> np.ndarray:
+    """:func:`integrate_tiles` on rows already classified (in view; ``free`` per row)."""
     informed = np.zeros(len(keys), np.int64)
     if len(rows):
-        _integrate(
+        kernel = _integrate_kernel(scan.kind, scan.shape)
+        kernel(
             keys,
             data,
             np.ascontiguousarray(rows, np.int64),
+            np.ascontiguousarray(free),
             np.int64(sign),
             grid.tile_size_vox,
             grid.voxel_size_m,
             scan.M,
             scan.c,
-            scan.kind,
             scan.params,
             scan.table,
             scan.range_m,
-            *scan.noise_args(),
+            scan.eps0,
+            scan.eps1,
+            scan.rho,
+            scan.falloff,
+            scan.q_rho,
             scan.max_disc,
             informed,
         )
@@ -154,32 +200,13 @@ class IntegrationReport:
     scans: int = 0
 
 
-_KEY_LIMIT = 1 << 20
-
-
-def _void_view(keys: np.ndarray) -> np.ndarray:
-    """One sortable int64 per tile key (keys must lie within +-2^20 tiles of the origin)."""
-    keys = np.ascontiguousarray(keys, np.int64)
-    if len(keys) and (keys.min() <= -_KEY_LIMIT or keys.max() >= _KEY_LIMIT):
-        raise InvalidInputError("bounds", "the scene extends beyond 2^20 tiles from the origin")
-    shifted = keys + _KEY_LIMIT
-    return (shifted[:, 0] << 42) | (shifted[:, 1] << 21) | shifted[:, 2]
-
-
 def _rows_of(keys: np.ndarray, subset: np.ndarray) -> np.ndarray:
     """Rows of sorted unique ``keys`` that hold each member of ``subset``."""
-    return np.searchsorted(_void_view(keys), _void_view(subset))
+    return np.searchsorted(pack_keys(keys), pack_keys(subset))
 
 
 def _isin(keys: np.ndarray, among: np.ndarray) -> np.ndarray:
-    return np.isin(_void_view(keys), _void_view(among))
-
-
-def _sorted_unique(keys: np.ndarray) -> np.ndarray:
-    if len(keys) == 0:
-        return np.zeros((0, 3), np.int64)
-    order = np.unique(_void_view(keys), return_index=True)[1]
-    return np.ascontiguousarray(keys[order])
+    return np.isin(pack_keys(keys), pack_keys(among))
 
 
 class Volume:
@@ -263,11 +290,11 @@ class Volume:
         touched_by: dict[str, np.ndarray] = {}
         for scan_id in new_ids:
             touched_by[scan_id] = tiles_touched(self._prepare(scan_id), grid)
-        all_touched = _sorted_unique(
+        all_touched = unique_keys(
             np.concatenate([np.zeros((0, 3), np.int64), *touched_by.values()])
         )
         created = all_touched[~_isin(all_touched, existing)] if len(existing) else all_touched
-        keys = _sorted_unique(np.concatenate([existing, created]))
+        keys = unique_keys(np.concatenate([existing, created]))
         is_new = _isin(keys, created)
         # pass 2: integration; new scans into every tile in view, old scans into new tiles
         data = np.zeros(
@@ -282,12 +309,15 @@ class Volume:
             candidates = np.arange(len(keys)) if is_new_scan else np.flatnonzero(is_new)
             if len(candidates) == 0:
                 continue
-            rows = candidates[tiles_in_view(prepared, grid, keys[candidates])]
+            status = classify_tiles(prepared, grid, keys[candidates])
+            rows = candidates[status != OUT]
             to_load = rows[~loaded[rows] & ~is_new[rows]]
             if len(to_load):
                 data[to_load] = self.store.read(keys[to_load])
                 loaded[to_load] = True
-            informed = integrate_tiles(prepared, grid, keys, data, rows)
+            informed = _integrate_seen(
+                prepared, grid, keys, data, rows, status[status != OUT] == FREE, 1
+            )
             changed |= informed > 0
             updates += int(informed.sum())
             if progress is not None and is_new_scan:
@@ -320,9 +350,18 @@ class Volume:
         owners = self.store.owners(keys)
         orphan = np.array([own == {scan_id} for own in owners], dtype=np.bool_)
         kept = np.flatnonzero(~orphan)
-        rows = kept[tiles_in_view(prepared, self.grid, keys[kept])]
+        status = classify_tiles(prepared, self.grid, keys[kept])
+        rows = kept[status != OUT]
         data = self.store.read(keys[rows])
-        informed = integrate_tiles(prepared, self.grid, keys[rows], data, sign=-1)
+        informed = _integrate_seen(
+            prepared,
+            self.grid,
+            keys[rows],
+            data,
+            np.arange(len(rows)),
+            status[status != OUT] == FREE,
+            -1,
+        )
         new_owners = [owners[r] - {scan_id} for r in rows]
         # owners also change on tiles the scan touched but does not inform
         relabel = [r for r in kept if scan_id in owners[r] and r not in set(rows.tolist())]

@@ -18,9 +18,14 @@ import numpy as np
 from .defaults import TILE_SIZE_VOX
 from .errors import InvalidGridError
 
-__all__ = ["MODES", "GridSpec"]
+__all__ = ["MODES", "Bounds", "GridSpec", "pack_keys", "unique_keys", "unpack_keys"]
 
 MODES = ("mapping", "closed")
+#: Tile keys must lie within +-KEY_LIMIT of the origin (21 bits per axis in a packed key).
+KEY_LIMIT = 1 << 20
+
+Bounds = tuple[float, float, float, float, float, float]
+"""A box ``(x0, y0, z0, x1, y1, z1)`` in metres."""
 _MIN_TILE_VOX = 4
 _MAX_TILE_VOX = 128
 
@@ -45,7 +50,7 @@ class GridSpec:
     voxel_size_m: float
     tile_size_vox: int = TILE_SIZE_VOX
     mode: str = "mapping"
-    bounds_m: tuple[float, float, float, float, float, float] | None = None
+    bounds_m: Bounds | None = None
 
     def __post_init__(self) -> None:
         try:
@@ -131,3 +136,31 @@ class GridSpec:
             mode=data.get("mode", "mapping"),
             bounds_m=None if bounds is None else tuple(bounds),
         )
+
+
+def pack_keys(keys: np.ndarray) -> np.ndarray:
+    """One int64 per tile key, ordered like the keys in lexicographic order.
+
+    Keys must lie within ``+-KEY_LIMIT`` tiles of the origin (thousands of kilometres at
+    millimetre voxels).
+    """
+    keys = np.asarray(keys, np.int64).reshape(-1, 3)
+    if len(keys) and (keys.min() <= -KEY_LIMIT or keys.max() >= KEY_LIMIT):
+        raise InvalidGridError(
+            "bounds", f"the scene extends beyond {KEY_LIMIT} tiles from the origin"
+        )
+    shifted = keys + KEY_LIMIT
+    return (shifted[:, 0] << 42) | (shifted[:, 1] << 21) | shifted[:, 2]
+
+
+def unpack_keys(packed: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`pack_keys`: int64 (n, 3)."""
+    packed = np.asarray(packed, np.int64)
+    mask = (1 << 21) - 1
+    out = np.stack([(packed >> 42) & mask, (packed >> 21) & mask, packed & mask], axis=1)
+    return np.ascontiguousarray(out - KEY_LIMIT)
+
+
+def unique_keys(keys: np.ndarray) -> np.ndarray:
+    """Sorted unique tile keys (int64 (n, 3))."""
+    return unpack_keys(np.unique(pack_keys(keys)))

@@ -7,7 +7,7 @@ Constructing one validates everything; the message of the error names the field.
 
 :func:`prepare_scan` applies the scene's :class:`FusionParams` once (filter,
 no-return policy) and computes what the kernels need: the prepared range map,
-the pose as ``p_S = M x_W + c``, and the reach map of the view test.
+the pose as ``p_S = M x_W + c``, and the quad-block maps of the tile tests.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from .errors import InvalidInputError, InvalidScanError
 from .filters import FILTERS, filter_range
 from .sensors import Sensor
 
-__all__ = ["NO_RETURN", "FusionParams", "PreparedScan", "Scan", "prepare_scan"]
+__all__ = ["NO_RETURN", "FusionParams", "PreparedScan", "Scan", "check_pose", "prepare_scan"]
 
 NO_RETURN = ("free", "invalid")
 #: Largest deviation of ``R^T R`` from the identity accepted in a pose.
@@ -216,7 +216,10 @@ class PreparedScan:
     shape: int
     q_rho: int
     max_disc: float  # < 0: no discontinuity test
-    reach: np.ndarray  # float64 (ceil(nqv / B), ceil(nqu / B)) block maxima of informed distance
+    # blocks of quads (engine._sampling.quad_blocks), each (ceil(nqv / B), ceil(nqu / B)):
+    reach: np.ndarray  # float64: farthest informed distance
+    near: np.ndarray  # float64: nearest corner range of a valid quad
+    valid: np.ndarray  # bool: every quad valid
     reach_max: float  # -inf when the scan informs nothing
 
     @property
@@ -252,9 +255,14 @@ def prepare_scan(scan: Scan, params: FusionParams) -> PreparedScan:
     kind, sensor_params, table = scan.sensor.kernel_args()
     nqv = rng.shape[0] - 1
     nqu = _sampling.quad_columns(kind, sensor_params)
-    B = _sampling.REACH_BLOCK
-    reach = np.empty((-(-nqv // B), -(-nqu // B)), np.float64)
-    _sampling.reach_blocks(kind, sensor_params, rng, eps0, eps1, falloff, max_disc, reach)
+    B = _sampling.QUAD_BLOCK
+    blocks = (-(-nqv // B), -(-nqu // B))
+    reach = np.empty(blocks, np.float64)
+    near = np.empty(blocks, np.float64)
+    valid = np.empty(blocks, np.bool_)
+    _sampling.quad_blocks(
+        kind, sensor_params, rng, eps0, eps1, falloff, max_disc, reach, near, valid
+    )
     R = scan.T_W_S[:3, :3]
     M = np.ascontiguousarray(R.T)
     c = np.ascontiguousarray(-M @ scan.T_W_S[:3, 3])
@@ -275,5 +283,7 @@ def prepare_scan(scan: Scan, params: FusionParams) -> PreparedScan:
         q_rho=q_rho,
         max_disc=max_disc,
         reach=reach,
+        near=near,
+        valid=valid,
         reach_max=float(reach.max()) if reach.size else -math.inf,
     )

@@ -12,13 +12,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, cast
 
 import numpy as np
 
 from .certainty import decode_logodds
 from .errors import InvalidGridError
-from .grid import GridSpec
+from .grid import Bounds, GridSpec
 
 __all__ = ["DenseGrid", "MemoryTileStore", "TileStore", "dense_logodds", "key_tuple"]
 
@@ -125,7 +125,8 @@ def dense_logodds(
     T = store.tile_size
     keys = store.keys()
     if bounds_m is not None:
-        lo, hi = GridSpec(grid.voxel_size_m, T, "mapping", tuple(bounds_m)).roi_voxels()
+        box = cast("Bounds", tuple(bounds_m))  # GridSpec checks it
+        lo, hi = GridSpec(grid.voxel_size_m, T, "mapping", box).roi_voxels()
     elif grid.bounds_m is not None:
         lo, hi = grid.roi_voxels()
     elif len(keys):

@@ -32,3 +32,9 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], object], fsync: bool = 
             os.fsync(dir_fd)
         finally:
             os.close(dir_fd)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write UTF-8 ``text`` to ``path`` atomically."""
+    data = text.encode()
+    atomic_write(path, lambda fh: fh.write(data))

@@ -20,7 +20,7 @@ import numpy as np
 
 from engine import InvalidInputError, Scan, Sensor, sensor_from_dict
 
-from ._files import atomic_write
+from ._files import atomic_write, atomic_write_text
 
 __all__ = [
     "Dataset",
@@ -151,9 +151,9 @@ def write_dataset(
     root = Path(path)
     root.mkdir(parents=True, exist_ok=True)
     text = json.dumps(sensor.to_dict(), indent=2) + "\n"
-    atomic_write(root / SENSOR_FILE, lambda fh: fh.write(text.encode()))
+    atomic_write_text(root / SENSOR_FILE, text)
     for name, scan in scans:
         write_scan_file(root / SCANS_DIR / f"{name}.npz", scan, scan.sensor != sensor)
     for name, content in (extra_files or {}).items():
-        atomic_write(root / name, lambda fh, c=content: fh.write(c.encode()))
+        atomic_write_text(root / name, content)
     return root

@@ -22,12 +22,12 @@ __all__ = ["read_grid", "write_grid"]
 def write_grid(path: str | os.PathLike[str], grid: DenseGrid) -> Path:
     """Write a dense grid atomically (a temporary file renamed into place)."""
     path = Path(path)
-    arrays = {
-        "logodds": np.asarray(grid.logodds, np.float32),
-        "origin": np.asarray(grid.origin, np.float64),
-        "voxel_size": np.float64(grid.voxel_size),
-    }
-    atomic_write(path, lambda fh: np.savez(fh, **arrays))
+    logodds = np.asarray(grid.logodds, np.float32)
+    origin = np.asarray(grid.origin, np.float64)
+    voxel_size = np.float64(grid.voxel_size)
+    atomic_write(
+        path, lambda fh: np.savez(fh, logodds=logodds, origin=origin, voxel_size=voxel_size)
+    )
     return path
 
 

@@ -107,8 +107,10 @@ def test_options_match_dense_reference(options: dict) -> None:
 def test_per_scan_noise_override_matches_reference() -> None:
     scans = scenes.scans("pinhole_z", 3)
     name, first = scans[0]
-    scans[0] = (name, Scan(first.range_m, first.T_W_S, first.sensor,
-                           noise=NoiseModel(eps_m=0.06, rho=0.2)))
+    scans[0] = (
+        name,
+        Scan(first.range_m, first.T_W_S, first.sensor, noise=NoiseModel(eps_m=0.06, rho=0.2)),
+    )
     volume = Volume(GridSpec(H, 8, "closed", scenes.BOUNDS), _params())
     volume.add_many(scans)
     _compare_with_reference(volume, scans)

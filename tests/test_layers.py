@@ -11,8 +11,17 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 FORBIDDEN = {
-    "engine": {"zarr", "trimesh", "fastapi", "pydantic", "pydantic_settings", "storage", "service",
-               "uvicorn", "dask"},
+    "engine": {
+        "zarr",
+        "trimesh",
+        "fastapi",
+        "pydantic",
+        "pydantic_settings",
+        "storage",
+        "service",
+        "uvicorn",
+        "dask",
+    },
     "storage": {"service", "fastapi", "uvicorn"},
 }
 
@@ -44,6 +53,7 @@ def test_importing_engine_loads_none_of_the_heavy_layers() -> None:
         " if m in sys.modules);"
         "print(','.join(bad))"
     )
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                         check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True
+    )
     assert out.stdout.strip() == ""
