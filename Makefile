@@ -23,7 +23,7 @@ run: demo
 demo: install
 	$(BIN)/rangefuse synth object out/demo-object --views 12
 	$(BIN)/rangefuse fuse out/demo-object --voxel-size 0.012 --mode closed \
-		--grid-out out/demo-object-grid.npz
+		--max-discontinuity 0.05 --grid-out out/demo-object-grid.npz -o out/demo-object.ply
 
 test: install
 	$(BIN)/pytest $(PYTEST_FLAGS) -m "not real_data"
@@ -50,11 +50,13 @@ $(BENCH_STAMP): $(STAMP)
 # Small inputs: a smoke run of every benchmark.
 bench: $(BENCH_STAMP)
 	$(BIN)/python benchmarks/fusion.py --quick
+	$(BIN)/python benchmarks/meshing.py --quick
 	$(BIN)/python benchmarks/vs_open3d.py --quick
 
 # The sizes the issues report.
 bench-full: $(BENCH_STAMP)
 	$(BIN)/python benchmarks/fusion.py
+	$(BIN)/python benchmarks/meshing.py
 	$(BIN)/python benchmarks/vs_open3d.py
 
 clean:

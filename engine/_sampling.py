@@ -18,6 +18,8 @@ from ._sensor_kernels import P_H, P_W, in_image, wraps
 
 #: Quads per side of a block of the maps used by the tile tests.
 QUAD_BLOCK = 8
+#: Blocks per side of the coarse level of the block statistics (see :func:`coarse_blocks`).
+COARSE = 8
 
 
 @njit(cache=True, inline="always")
@@ -121,3 +123,24 @@ def quad_blocks(kind, params, rng, eps0, eps1, falloff, max_disc, reach, near, v
             reach[bv, bu] = far
             near[bv, bu] = close
             valid[bv, bu] = all_valid
+
+
+def coarse_blocks(
+    reach: np.ndarray, near: np.ndarray, valid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The block statistics reduced over ``COARSE`` x ``COARSE`` blocks (max, min, all).
+
+    Tile tests read these for the parts of a large pixel rectangle that cover whole coarse
+    cells, which gives exactly the same result as reading every block.
+    """
+    nv, nu = reach.shape
+    cv, cu = -(-nv // COARSE), -(-nu // COARSE)
+    pad = ((0, cv * COARSE - nv), (0, cu * COARSE - nu))
+    r = np.pad(reach, pad, constant_values=-np.inf).reshape(cv, COARSE, cu, COARSE)
+    n = np.pad(near, pad, constant_values=np.inf).reshape(cv, COARSE, cu, COARSE)
+    v = np.pad(valid, pad, constant_values=True).reshape(cv, COARSE, cu, COARSE)
+    return (
+        np.ascontiguousarray(r.max(axis=(1, 3))),
+        np.ascontiguousarray(n.min(axis=(1, 3))),
+        np.ascontiguousarray(v.all(axis=(1, 3))),
+    )

@@ -19,3 +19,10 @@ LOGIT_SCALE = 65536.0
 COUNT_BITS = 20
 #: A voxel may be informed by at most this many scans (about a million).
 MAX_INFORMING_SCANS = (1 << COUNT_BITS) - 1
+
+#: Edge refinement (METHOD §3) re-evaluates the certainty at this many sub-intervals of each
+#: crossing cube edge (``REFINE_SAMPLES - 1`` inner points) and places the vertex at the
+#: first crossing of ``L = 0`` among them. Measured on the synthetic object (12 views, 12 mm
+#: voxels): mean error 1.04 mm linear, 0.51 mm with 2, 0.44 mm with 4, 0.42 mm with 8; cost
+#: grows with the number of inner points.
+REFINE_SAMPLES = 4

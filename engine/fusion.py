@@ -27,6 +27,7 @@ from ._sampling import sample_range
 from .certainty import contribution, pack
 from .errors import InvalidInputError, ScanNotFoundError
 from .grid import GridSpec, pack_keys, unique_keys
+from .meshing import Mesh, extract_mesh
 from .scans import FusionParams, PreparedScan, Scan, prepare_scan
 from .tiling import FREE, OUT, classify_tiles, tiles_touched
 from .volume import DenseGrid, MemoryTileStore, TileStore, dense_logodds
@@ -384,6 +385,13 @@ class Volume:
     # --- reading ------------------------------------------------------------------------------
     def tile_keys(self) -> np.ndarray:
         return self.store.keys()
+
+    def extract_mesh(self, *, refine: bool = True, bounds_m: Sequence[float] | None = None) -> Mesh:
+        """The surface of the volume as one mesh (see :func:`engine.meshing.mesh_tiles`)."""
+        scans = [self._prepare(scan_id) for scan_id in self._scans]
+        return extract_mesh(
+            self.store, self.grid, self.params, scans, refine=refine, bounds_m=bounds_m
+        )
 
     def to_dense(self, bounds_m: Sequence[float] | None = None) -> DenseGrid:
         """The fused log-odds as a dense grid (see :func:`engine.volume.dense_logodds`)."""

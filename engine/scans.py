@@ -220,6 +220,7 @@ class PreparedScan:
     reach: np.ndarray  # float64: farthest informed distance
     near: np.ndarray  # float64: nearest corner range of a valid quad
     valid: np.ndarray  # bool: every quad valid
+    coarse: tuple[np.ndarray, np.ndarray, np.ndarray]  # the same over COARSE^2 blocks
     reach_max: float  # -inf when the scan informs nothing
 
     @property
@@ -285,5 +286,6 @@ def prepare_scan(scan: Scan, params: FusionParams) -> PreparedScan:
         reach=reach,
         near=near,
         valid=valid,
+        coarse=_sampling.coarse_blocks(reach, near, valid),
         reach_max=float(reach.max()) if reach.size else -math.inf,
     )

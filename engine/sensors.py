@@ -444,7 +444,7 @@ def sensor_from_dict(data: dict[str, Any]) -> Sensor:
     if not isinstance(data, dict):
         raise InvalidSensorError("sensor", f"must be a JSON object, got {type(data).__name__}")
     model = data.get("model")
-    if model not in _MODELS:
+    if not isinstance(model, str) or model not in _MODELS:
         raise InvalidSensorError(
             "sensor.model",
             f"unknown sensor model {model!r}; expected one of {', '.join(sorted(_MODELS))}",

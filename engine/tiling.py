@@ -34,7 +34,7 @@ import numpy as np
 from numba import njit, prange
 
 from . import _sensor_kernels as _k
-from ._sampling import QUAD_BLOCK, quad_columns, quad_ranges
+from ._sampling import COARSE, QUAD_BLOCK, quad_columns, quad_ranges
 from .certainty import SHAPE_LINEAR
 from .defaults import BAND_MARGIN_VOX
 from .grid import GridSpec, unique_keys
@@ -79,19 +79,37 @@ def _clip_quads(lo, hi, n):
 
 
 @njit(cache=True)
-def _blocks(reach, near, valid, qu0, qu1, qv0, qv1, acc):
-    """Fold the block statistics over quads [qu0, qu1] x [qv0, qv1] into ``acc``
-    (farthest reach, nearest range, all valid)."""
-    for bv in range(qv0 // QUAD_BLOCK, qv1 // QUAD_BLOCK + 1):
-        for bu in range(qu0 // QUAD_BLOCK, qu1 // QUAD_BLOCK + 1):
-            acc[0] = max(acc[0], reach[bv, bu])
-            acc[1] = min(acc[1], near[bv, bu])
-            if not valid[bv, bu]:
-                acc[2] = 0.0
+def _fold(acc, far, close, ok):
+    acc[0] = max(acc[0], far)
+    acc[1] = min(acc[1], close)
+    if not ok:
+        acc[2] = 0.0
 
 
 @njit(cache=True)
-def _rect_stats(reach, near, valid, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
+def _blocks(reach, near, valid, coarse, qu0, qu1, qv0, qv1, acc):
+    """Fold the block statistics over quads [qu0, qu1] x [qv0, qv1] into ``acc``
+    (farthest reach, nearest range, all valid), reading the coarse level for whole cells."""
+    creach, cnear, cvalid = coarse
+    bv0, bv1 = qv0 // QUAD_BLOCK, qv1 // QUAD_BLOCK
+    bu0, bu1 = qu0 // QUAD_BLOCK, qu1 // QUAD_BLOCK
+    for cv in range(bv0 // COARSE, bv1 // COARSE + 1):
+        v0 = max(bv0, cv * COARSE)
+        v1 = min(bv1, cv * COARSE + COARSE - 1)
+        rows_whole = v0 == cv * COARSE and v1 == cv * COARSE + COARSE - 1
+        for cu in range(bu0 // COARSE, bu1 // COARSE + 1):
+            u0 = max(bu0, cu * COARSE)
+            u1 = min(bu1, cu * COARSE + COARSE - 1)
+            if rows_whole and u0 == cu * COARSE and u1 == cu * COARSE + COARSE - 1:
+                _fold(acc, creach[cv, cu], cnear[cv, cu], cvalid[cv, cu])
+                continue
+            for bv in range(v0, v1 + 1):
+                for bu in range(u0, u1 + 1):
+                    _fold(acc, reach[bv, bu], near[bv, bu], valid[bv, bu])
+
+
+@njit(cache=True)
+def _rect_stats(reach, near, valid, coarse, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
     """Block statistics under a pixel rectangle, into ``acc`` (see :func:`_blocks`).
 
     ``ring > 0`` means columns are azimuth-periodic with that many columns per full turn;
@@ -112,12 +130,12 @@ def _rect_stats(reach, near, valid, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc)
     any_quad = False
     qu0, qu1 = _clip_quads(lo, hi, nqu)
     if qu1 >= qu0:
-        _blocks(reach, near, valid, qu0, qu1, qv0, qv1, acc)
+        _blocks(reach, near, valid, coarse, qu0, qu1, qv0, qv1, acc)
         any_quad = True
     if ring > 0.0 and hi >= ring:
         qu0, qu1 = _clip_quads(0.0, hi - ring, nqu)
         if qu1 >= qu0:
-            _blocks(reach, near, valid, qu0, qu1, qv0, qv1, acc)
+            _blocks(reach, near, valid, coarse, qu0, qu1, qv0, qv1, acc)
             any_quad = True
     return any_quad
 
@@ -142,6 +160,7 @@ def _classify_kernel(kind: int):
     def classify(
         key,
         T,
+        halo,
         h,
         M,
         c,
@@ -151,6 +170,7 @@ def _classify_kernel(kind: int):
         reach,
         near,
         valid,
+        coarse,
         reach_max,
         nqu,
         nqv,
@@ -163,9 +183,9 @@ def _classify_kernel(kind: int):
     ):
         W = params[_k.P_W]
         H = params[_k.P_H]
-        for a in range(3):  # box of the tile's voxel centres, world frame
+        for a in range(3):  # box of the tile's voxel centres (and halo), world frame
             lo[a] = (key[a] * T + 0.5) * h
-            hi[a] = ((key[a] + 1) * T - 0.5) * h
+            hi[a] = ((key[a] + 1) * T - 0.5 + halo) * h
         # farthest voxel centre: every range convention is convex, so at a corner
         d_max = -np.inf
         for corner in range(8):
@@ -270,7 +290,7 @@ def _classify_kernel(kind: int):
         if full_v:
             v_lo = 0.0
             v_hi = float(nqv)
-        if not _rect_stats(reach, near, valid, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
+        if not _rect_stats(reach, near, valid, coarse, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
             return OUT
         if acc[0] < d_min - _DIST_SLACK:
             return OUT
@@ -291,7 +311,24 @@ def _classify_kernel(kind: int):
 
     @njit(cache=True, parallel=True)
     def classify_many(
-        keys, T, h, M, c, o_W, params, table, reach, near, valid, reach_max, eps0, eps1, linear, out
+        keys,
+        T,
+        halo,
+        h,
+        M,
+        c,
+        o_W,
+        params,
+        table,
+        reach,
+        near,
+        valid,
+        coarse,
+        reach_max,
+        eps0,
+        eps1,
+        linear,
+        out,
     ):
         nqv = int(params[_k.P_H]) - 1
         nqu = quad_columns(kind, params)
@@ -302,6 +339,7 @@ def _classify_kernel(kind: int):
             out[n] = classify(
                 keys[n],
                 T,
+                halo,
                 h,
                 M,
                 c,
@@ -311,6 +349,7 @@ def _classify_kernel(kind: int):
                 reach,
                 near,
                 valid,
+                coarse,
                 reach_max,
                 nqu,
                 nqv,
@@ -325,12 +364,16 @@ def _classify_kernel(kind: int):
     return classify_many
 
 
-def classify_tiles(scan: PreparedScan, grid: GridSpec, keys: np.ndarray) -> np.ndarray:
+def classify_tiles(
+    scan: PreparedScan, grid: GridSpec, keys: np.ndarray, halo: int = 0
+) -> np.ndarray:
     """How the scan sees each tile: int8 ``OUT``, ``PARTIAL`` or ``FREE`` per row of ``keys``.
 
-    Conservative: a tile with a voxel the scan informs is never ``OUT``, and ``FREE`` only
-    when the scan informs every voxel of the tile as free space (linear shape:
-    contribution ``logit(rho)`` each), exactly as the voxel-by-voxel kernel would.
+    Conservative: a tile with a point the scan informs is never ``OUT``, and ``FREE`` only
+    when the scan informs every point of the tile as free space (linear shape:
+    contribution ``logit(rho)`` each), exactly as the voxel-by-voxel kernel would. The
+    tile is the box of its voxel centres, extended by ``halo`` voxels on the upper side of
+    each axis (meshing uses ``halo=1``: the cubes whose lowest corner is in the tile).
     """
     keys = np.ascontiguousarray(keys, dtype=np.int64).reshape(-1, 3)
     out = np.zeros(keys.shape[0], dtype=np.int8)
@@ -339,6 +382,7 @@ def classify_tiles(scan: PreparedScan, grid: GridSpec, keys: np.ndarray) -> np.n
     _classify_kernel(scan.kind)(
         keys,
         grid.tile_size_vox,
+        float(halo),
         grid.voxel_size_m,
         scan.M,
         scan.c,
@@ -348,6 +392,7 @@ def classify_tiles(scan: PreparedScan, grid: GridSpec, keys: np.ndarray) -> np.n
         scan.reach,
         scan.near,
         scan.valid,
+        scan.coarse,
         scan.reach_max,
         scan.eps0,
         scan.eps1,
@@ -535,14 +580,22 @@ def _band_kernels(kind: int):
                     box[3 + ax] = max(box[3 + ax], corners[k, ax])
             span = _tile_range(box, h, T)
             small = span[3] - span[0] <= 1 and span[4] - span[1] <= 1 and span[5] - span[2] <= 1
-            if small or a1 - a0 < _MIN_PIECE or b1 - b0 < _MIN_PIECE or top + 2 > stack.shape[0]:
-                count = _emit(span, keys, count, fill, prev)
-                continue
             wide_u = 0.0
             wide_v = 0.0
             for ax in range(3):
                 wide_u += (corners[5, ax] - corners[4, ax]) ** 2
                 wide_v += (corners[6, ax] - corners[4, ax]) ** 2
+            # the band's depth cannot shrink by halving the quad: stop once it is narrow
+            narrow = max(wide_u, wide_v) <= (0.5 * T * h) ** 2
+            if (
+                small
+                or narrow
+                or a1 - a0 < _MIN_PIECE
+                or b1 - b0 < _MIN_PIECE
+                or top + 2 > stack.shape[0]
+            ):
+                count = _emit(span, keys, count, fill, prev)
+                continue
             for half in range(2):
                 if wide_u >= wide_v:
                     mid = 0.5 * (a0 + a1)

@@ -1,8 +1,9 @@
 """The ``rangefuse`` command line.
 
 ``rangefuse synth`` writes analytic test scenes as dataset folders;
-``rangefuse fuse`` fuses a dataset folder into a volume (and, with
-``--grid-out``, writes it densely for NumPy tools). Bad input ends with exit
+``rangefuse fuse`` fuses a dataset folder into a volume and, with ``-o``,
+writes its surface as a mesh (with ``--grid-out``, the volume densely for
+NumPy tools). Bad input ends with exit
 status 2 and a message that names the problem.
 """
 
@@ -12,6 +13,7 @@ import argparse
 import json
 import math
 import sys
+import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -32,6 +34,7 @@ from engine import (
 from engine.certainty import SHAPES
 from engine.defaults import EPS_PER_VOXEL, RHO, TILE_SIZE_VOX
 from storage import DatasetError, open_dataset, write_dataset, write_grid
+from storage.meshes import MeshFormatError, mesh_format, write_mesh
 
 from ._progress import ProgressBar
 
@@ -72,6 +75,27 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _check_writable(path: Path, option: str) -> None:
+    """Fail before any work when ``path`` cannot be written.
+
+    Refuses an existing folder, a parent that is a file, and a folder that does not accept
+    files (probed with a temporary file that leaves nothing behind). Missing parent folders
+    are fine: the writers create them.
+    """
+    if path.is_dir():
+        raise CommandError(f"{option} {path}: is a directory")
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise CommandError(f"{option} {path}: {parent} is not a directory")
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as exc:
+        raise CommandError(f"{option} {path}: cannot write in {parent} ({exc.strerror})") from None
+
+
 # --- synth ------------------------------------------------------------------------------------
 
 
@@ -79,6 +103,9 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     from engine.synth import make_dataset, parse_noise
 
     noise = parse_noise(args.noise)
+    if args.out.exists() and not args.out.is_dir():
+        raise CommandError(f"OUT {args.out}: exists and is not a directory")
+    _check_writable(args.out / "sensor.json", "OUT")
     t0 = time.perf_counter()
     data = make_dataset(
         args.scene, views=args.views, noise=noise, seed=args.seed, length_m=args.length
@@ -93,7 +120,20 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         },
         indent=1,
     )
-    out = write_dataset(args.out, data.sensor, data.scans, {"scene.json": scene_json + "\n"})
+    stale = sorted(
+        p.name
+        for p in (args.out / "scans").glob("*.npz")
+        if p.stem not in {name for name, _ in data.scans}
+    )
+    if stale:
+        raise CommandError(
+            f"OUT {args.out}: already holds {len(stale)} scans that this run would not replace "
+            f"({stale[0]}, ...), which would mix two datasets; remove them or choose another folder"
+        )
+    try:
+        out = write_dataset(args.out, data.sensor, data.scans, {"scene.json": scene_json + "\n"})
+    except OSError as exc:
+        raise CommandError(f"OUT {args.out}: cannot write the dataset ({exc})") from None
     print(
         f"wrote {len(data.scans)} {data.sensor.model} scans of the {data.name} scene to {out} "
         f"in {time.perf_counter() - t0:.1f} s; region of interest "
@@ -138,6 +178,14 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
         no_return=args.no_return,
     )
     GridSpec(args.voxel_size, args.tile_size, "mapping", args.bounds)  # validate early
+    if args.grid_out is not None:
+        _check_writable(args.grid_out, "--grid-out")
+    if args.output is not None:
+        try:
+            mesh_format(args.output)
+        except MeshFormatError as exc:
+            raise CommandError(f"-o: {exc}") from None
+        _check_writable(args.output, "-o")
     t0 = time.perf_counter()
     scans = list(dataset.scans())
     bounds = tuple(args.bounds) if args.bounds is not None else None
@@ -164,8 +212,24 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
     )
     if args.grid_out is not None:
         dense = volume.to_dense(args.bounds)
-        write_grid(args.grid_out, dense)
+        try:
+            write_grid(args.grid_out, dense)
+        except OSError as exc:
+            raise CommandError(f"--grid-out {args.grid_out}: cannot write ({exc})") from None
         print(f"wrote {'x'.join(map(str, dense.logodds.shape))} grid to {args.grid_out}")
+    if args.output is not None:
+        t0 = time.perf_counter()
+        mesh = volume.extract_mesh(refine=not args.no_refine, bounds_m=args.bounds)
+        elapsed = time.perf_counter() - t0
+        try:
+            write_mesh(args.output, mesh)
+        except OSError as exc:
+            raise CommandError(f"-o {args.output}: cannot write ({exc})") from None
+        inferred = int(mesh.inferred.sum())
+        print(
+            f"wrote {mesh.n_faces:,} triangles ({inferred:,} inferred), {mesh.n_vertices:,} "
+            f"vertices to {args.output} (extracted in {elapsed:.2f} s)"
+        )
     return 0
 
 
@@ -289,6 +353,21 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="GRID.npz",
         help="write the fused log-odds densely (FORMAT.md; NaN = unknown)",
+    )
+    fuse.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=None,
+        metavar="MESH",
+        help="write the surface as a mesh: .ply (binary, with an 'inferred' face flag), "
+        ".obj, .glb or .stl",
+    )
+    fuse.add_argument(
+        "--no-refine",
+        action="store_true",
+        help="place vertices by linear interpolation of the log-odds instead of re-evaluating "
+        "the scans along each edge (faster, less accurate)",
     )
     fuse.add_argument("--quiet", action="store_true", help="no progress bar")
     fuse.set_defaults(func=_cmd_fuse)

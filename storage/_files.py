@@ -17,6 +17,7 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], object], fsync: bool = 
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp makes 0600; files get the usual mode
         with os.fdopen(fd, "wb") as fh:
             write(fh)
             if fsync:
@@ -32,6 +33,15 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], object], fsync: bool = 
             os.fsync(dir_fd)
         finally:
             os.close(dir_fd)
+
+
+def _read_umask() -> int:
+    mask = os.umask(0o022)  # the only way to read it; once, at import (not thread-safe)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _read_umask()
 
 
 def atomic_write_text(path: Path, text: str) -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,45 +43,108 @@ class DatasetError(ValueError):
 def _sensor_from_json(text: str, where: str) -> Sensor:
     try:
         data = json.loads(text)
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, RecursionError) as exc:
         raise DatasetError(f"{where}: not valid JSON ({exc})") from None
     try:
         return sensor_from_dict(data)
     except InvalidInputError as exc:
         raise DatasetError(f"{where}: {exc}") from None
+    except (TypeError, ValueError) as exc:  # defence in depth: a value of a foreign type
+        raise DatasetError(f"{where}: not a valid sensor ({exc})") from None
+
+
+#: What reading a damaged or foreign file can raise inside ``np.load`` and ``zipfile``:
+#: truncation, bad CRCs or deflate streams, unsupported zip features, encrypted members,
+#: a corrupted ``.npy`` header claiming an impossible shape.
+_READ_ERRORS = (
+    OSError,
+    EOFError,
+    zipfile.BadZipFile,
+    zlib.error,
+    NotImplementedError,
+    RuntimeError,
+    MemoryError,
+)
+
+
+def _read_npz(
+    path: Path, where: str, required: tuple[str, ...], optional: tuple[str, ...] = ()
+) -> dict[str, np.ndarray]:
+    """The ``required`` and present ``optional`` arrays of an ``.npz`` file, by key.
+
+    Never unpickles (``allow_pickle=False``); every failure is a :class:`DatasetError`
+    naming ``where`` and, once the archive opens, the key. Shared with :mod:`storage.grids`.
+    """
+    try:
+        loaded = np.load(path, allow_pickle=False)
+    except ValueError as exc:
+        if "pickle" in str(exc).lower():  # neither zip nor .npy magic: np.load would unpickle
+            raise DatasetError(
+                f"{where}: not an .npz file (neither a zip archive nor NumPy data)"
+            ) from None
+        raise DatasetError(f"{where}: not a readable .npz file ({exc})") from None
+    except _READ_ERRORS as exc:
+        raise DatasetError(f"{where}: not a readable .npz file ({exc})") from None
+    if not isinstance(loaded, np.lib.npyio.NpzFile):
+        raise DatasetError(
+            f"{where}: holds a single .npy array, not an .npz archive with keys "
+            + ", ".join(map(repr, required))
+        )
+    arrays: dict[str, np.ndarray] = {}
+    with loaded as npz:
+        names = set(npz.files)
+        for key in required:
+            if key not in names:
+                raise DatasetError(f"{where}: missing key {key!r} (has {sorted(names)})")
+        for key in required + optional:
+            if key not in names:
+                continue
+            try:
+                arrays[key] = npz[key]
+            except (ValueError, *_READ_ERRORS) as exc:
+                if isinstance(exc, ValueError) and "pickle" in str(exc).lower():
+                    raise DatasetError(
+                        f"{where}: key {key!r} holds pickled Python objects (dtype object), "
+                        "which are never loaded"
+                    ) from None
+                raise DatasetError(
+                    f"{where}: key {key!r} is not a readable array ({exc})"
+                ) from None
+    return arrays
 
 
 def read_scan_file(path: str | os.PathLike[str], default_sensor: Sensor | None) -> Scan:
-    """Read one ``scans/*.npz`` file (FORMAT.md) into a validated :class:`Scan`."""
+    """Read one ``scans/*.npz`` file (FORMAT.md) into a validated :class:`Scan`.
+
+    Raises
+    ------
+    DatasetError
+        For a file that is not a readable ``.npz`` (truncated, corrupted, pickled objects),
+        a missing key, or a range map, pose or sensor that fails validation; the message
+        names the file and the key or field.
+    """
     path = Path(path)
     where = str(path)
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            names = set(npz.files)
-            for key in ("range", "pose"):
-                if key not in names:
-                    raise DatasetError(f"{where}: missing key {key!r} (has {sorted(names)})")
-            range_m = npz["range"]
-            pose = npz["pose"]
-            sensor_text = npz["sensor"] if "sensor" in names else None
-    except DatasetError:
-        raise
-    except ValueError as exc:
-        if "pickle" in str(exc).lower():
-            raise DatasetError(f"{where}: holds pickled objects, which are never loaded") from None
-        raise DatasetError(f"{where}: not a readable .npz file ({exc})") from None
-    except (OSError, zipfile.BadZipFile, EOFError) as exc:
-        raise DatasetError(f"{where}: not a readable .npz file ({exc})") from None
+    arrays = _read_npz(path, where, ("range", "pose"), ("sensor",))
+    range_m = arrays["range"]
+    pose = arrays["pose"]
+    sensor_text = arrays.get("sensor")
     if sensor_text is not None:
         if sensor_text.dtype.kind not in "US" or sensor_text.ndim != 0:
             raise DatasetError(f"{where}: key 'sensor' must be a JSON string")
-        sensor = _sensor_from_json(str(sensor_text), f"{where}: sensor")
+        value = sensor_text.item()
+        if isinstance(value, bytes):
+            try:
+                value = value.decode()
+            except UnicodeDecodeError:
+                raise DatasetError(f"{where}: key 'sensor' is not UTF-8 text") from None
+        sensor = _sensor_from_json(value, f"{where}: sensor")
     elif default_sensor is not None:
         sensor = default_sensor
     else:
         raise DatasetError(f"{where}: no per-scan 'sensor' and no {SENSOR_FILE} in the dataset")
     if pose.dtype.kind not in "fiu":
-        raise DatasetError(f"{where}: pose must be numeric, got dtype {pose.dtype}")
+        raise DatasetError(f"{where}: pose: must be numeric, got dtype {pose.dtype}")
     try:
         return Scan(range_m=range_m, T_W_S=pose.astype(np.float64), sensor=sensor)
     except InvalidInputError as exc:
@@ -112,12 +176,18 @@ class Dataset:
 def open_dataset(path: str | os.PathLike[str]) -> Dataset:
     """Open a FORMAT.md dataset folder (reads ``sensor.json`` and lists ``scans/*.npz``)."""
     root = Path(path)
+    if not root.exists():
+        raise DatasetError(f"{root}: no such dataset folder")
     if not root.is_dir():
         raise DatasetError(f"{root}: not a directory")
     sensor_path = root / SENSOR_FILE
     sensor = None
     if sensor_path.exists():
-        sensor = _sensor_from_json(sensor_path.read_text(), str(sensor_path))
+        try:
+            text = sensor_path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise DatasetError(f"{sensor_path}: cannot be read as UTF-8 text ({exc})") from None
+        sensor = _sensor_from_json(text, str(sensor_path))
     scans_dir = root / SCANS_DIR
     if not scans_dir.is_dir():
         raise DatasetError(f"{root}: no {SCANS_DIR}/ folder")

@@ -290,6 +290,12 @@ def test_invalid_other_models(base: dict, change: dict, field: str, words: str) 
     assert words in str(info.value)
 
 
+@pytest.mark.parametrize("model", [["pinhole"], {"a": 1}, 3, None])
+def test_a_model_that_is_not_a_name_is_refused(model: object) -> None:
+    with pytest.raises(InvalidSensorError, match=r"^sensor.model: unknown sensor model"):
+        sensor_from_dict({**PINHOLE, "model": model})
+
+
 def test_missing_fields_are_named() -> None:
     spec = dict(PINHOLE)
     del spec["fy"]

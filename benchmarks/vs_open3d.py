@@ -1,0 +1,228 @@
+"""rangefuse against Open3D's CPU TSDF integration on the same synthetic room frames.
+
+Both fuse the room's 640x480 z-depth frames (``engine.synth.make_dataset("room")``) at the
+same voxel size, one after the other in this process, each after a warm-up of one frame
+(numba compiles or loads its kernels; Open3D allocates its hash map). rangefuse runs as in
+benchmarks/fusion.py: mapping mode, ``eps = 2 voxels``, ``rho = 0.05``. Open3D runs a
+``VoxelBlockGrid`` (tsdf + weight, float32, 8^3 blocks) with a truncation of 4 voxels,
+integrating each frame's frustum blocks. Prints seconds, frames/s, their ratio and the peak
+resident memory of the process during each run (the frames themselves included).
+
+    python benchmarks/vs_open3d.py            # 100 frames at 2 cm and 1 cm
+    python benchmarks/vs_open3d.py --quick    # 10 frames at 4 cm (a smoke run)
+
+Needs the optional ``bench`` extra (``pip install -e '.[bench]'``: open3d, psutil).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import importlib.util
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from engine import FusionParams, GridSpec, NoiseModel, PinholeSensor, Scan, Volume
+from engine.synth import make_dataset
+
+#: Open3D's truncation, in voxels, and the depth beyond which it ignores a pixel, metres.
+TRUNC_VOXELS = 4.0
+DEPTH_MAX_M = 8.0
+#: Hash-map blocks Open3D allocates up front: enough for the room at 1 cm.
+BLOCKS_AT_1CM = 100_000
+
+
+def _import_open3d() -> tuple[Any, Any]:
+    try:
+        import open3d as o3d
+        import open3d.core as o3c
+    except ImportError as exc:
+        sys.exit(
+            f"vs_open3d: Open3D is not importable ({exc}).\n"
+            "Install the bench extra: make bench (or pip install -e '.[bench]'; "
+            "the wheel also needs libusb-1.0-0 from apt)."
+        )
+    return o3d, o3c
+
+
+class PeakRSS:
+    """Samples the resident set size of this process in a thread; ``peak_mb`` after ``with``."""
+
+    def __init__(self, interval_s: float = 0.01) -> None:
+        import psutil
+
+        self._process = psutil.Process(os.getpid())
+        self._interval_s = interval_s
+        self._stop = threading.Event()
+        self.peak_mb = 0.0
+
+    def _sample(self) -> None:
+        self.peak_mb = max(self.peak_mb, self._process.memory_info().rss / 2**20)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._interval_s):
+            self._sample()
+
+    def __enter__(self) -> PeakRSS:
+        self._sample()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._sample()
+
+
+def depth_images(scans: Sequence[tuple[str, Scan]]) -> list[np.ndarray]:
+    """z-depth maps in metres, float32, 0 where a pixel has no measurement (Open3D's invalid)."""
+    out = []
+    for _, scan in scans:
+        sensor = scan.sensor
+        if not isinstance(sensor, PinholeSensor):
+            raise SystemExit(f"vs_open3d: needs a pinhole sensor, got {sensor.model}")
+        depth = scan.range_m.astype(np.float32)
+        if sensor.range_convention == "ray":  # |p| -> p_z along each pixel's ray
+            v, u = np.mgrid[0 : sensor.height, 0 : sensor.width]
+            x = (u - sensor.cx) / sensor.fx
+            y = (v - sensor.cy) / sensor.fy
+            depth = (depth / np.sqrt(x * x + y * y + 1.0)).astype(np.float32)
+        depth[~np.isfinite(depth)] = 0.0
+        out.append(np.ascontiguousarray(depth))
+    return out
+
+
+def run_rangefuse(
+    scans: Sequence[tuple[str, Scan]], voxel_m: float, tile_vox: int
+) -> dict[str, float]:
+    params = FusionParams(NoiseModel(eps_m=2 * voxel_m, rho=0.05))
+    grid = GridSpec(voxel_m, tile_vox, "mapping")
+    Volume(grid, params).add_many(list(scans[:1]))  # compile or load the kernels
+    gc.collect()
+    volume = Volume(grid, params)
+    with PeakRSS() as rss:
+        t0 = time.perf_counter()
+        volume.add_many(list(scans))
+        seconds = time.perf_counter() - t0
+    tiles = len(volume.tile_keys())
+    return {"seconds": seconds, "rss_mb": rss.peak_mb, "blocks": tiles}
+
+
+def run_open3d(
+    depths: Sequence[np.ndarray],
+    poses: Sequence[np.ndarray],
+    sensor: PinholeSensor,
+    voxel_m: float,
+) -> dict[str, float]:
+    o3d, o3c = _import_open3d()
+    device = o3c.Device("CPU:0")
+    intrinsic = o3c.Tensor(
+        np.array([[sensor.fx, 0.0, sensor.cx], [0.0, sensor.fy, sensor.cy], [0.0, 0.0, 1.0]]),
+        o3c.float64,
+    )
+    extrinsics = [o3c.Tensor(np.linalg.inv(T_W_S), o3c.float64) for T_W_S in poses]
+    block_count = max(10_000, int(BLOCKS_AT_1CM * (0.01 / voxel_m) ** 2))
+
+    def new_grid() -> Any:
+        return o3d.t.geometry.VoxelBlockGrid(
+            attr_names=("tsdf", "weight"),
+            attr_dtypes=(o3c.float32, o3c.float32),
+            attr_channels=((1), (1)),
+            voxel_size=voxel_m,
+            block_resolution=8,
+            block_count=block_count,
+            device=device,
+        )
+
+    def integrate(vbg: Any, depth_np: np.ndarray, extrinsic: Any) -> None:
+        depth = o3d.t.geometry.Image(o3c.Tensor(depth_np))
+        kwargs: dict[str, Any] = {
+            "depth_scale": 1.0,
+            "depth_max": DEPTH_MAX_M,
+            "trunc_voxel_multiplier": TRUNC_VOXELS,
+        }
+        frustum = vbg.compute_unique_block_coordinates(depth, intrinsic, extrinsic, **kwargs)
+        vbg.integrate(frustum, depth, intrinsic, extrinsic, **kwargs)
+
+    integrate(new_grid(), depths[0], extrinsics[0])  # warm up
+    gc.collect()
+    vbg = new_grid()
+    with PeakRSS() as rss:
+        t0 = time.perf_counter()
+        for depth_np, extrinsic in zip(depths, extrinsics, strict=True):
+            integrate(vbg, depth_np, extrinsic)
+        seconds = time.perf_counter() - t0
+    blocks = int(vbg.hashmap().size())
+    del vbg
+    gc.collect()
+    return {"seconds": seconds, "rss_mb": rss.peak_mb, "blocks": blocks}
+
+
+def compare(frames: int, voxel_m: float, tile_vox: int, emit: Callable[[str], None]) -> None:
+    data = make_dataset("room", views=frames)
+    sensor = data.sensor
+    if not isinstance(sensor, PinholeSensor):
+        raise SystemExit(f"vs_open3d: the room's sensor is {sensor.model}, expected pinhole")
+    depths = depth_images(data.scans)
+    poses = [scan.T_W_S for _, scan in data.scans]
+    rf = run_rangefuse(data.scans, voxel_m, tile_vox)
+    gc.collect()
+    o3 = run_open3d(depths, poses, sensor, voxel_m)
+    rf_fps = frames / rf["seconds"]
+    o3_fps = frames / o3["seconds"]
+    emit(
+        f"{voxel_m:6.3f} {frames:6d} {rf['seconds']:7.2f} {rf_fps:7.2f} {o3['seconds']:7.2f} "
+        f"{o3_fps:7.2f} {rf_fps / o3_fps:6.2f} {rf['rss_mb']:7.0f} {o3['rss_mb']:7.0f} "
+        f"{rf['blocks']:7.0f} {o3['blocks']:7.0f}"
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="10 frames at 4 cm")
+    parser.add_argument("--frames", type=int, default=None, help="frames (default 100)")
+    parser.add_argument(
+        "--voxel",
+        type=float,
+        action="append",
+        default=None,
+        metavar="M",
+        help="voxel size in metres; repeat for several (default 0.02 and 0.01)",
+    )
+    parser.add_argument("--tile-size", type=int, default=16, help="rangefuse tile edge, voxels")
+    args = parser.parse_args(argv)
+    frames = args.frames or (10 if args.quick else 100)
+    voxels = args.voxel or ([0.04] if args.quick else [0.02, 0.01])
+    if importlib.util.find_spec("open3d") is None:
+        _import_open3d()  # exits with the install hint
+    # numba picks its threading layer before Open3D loads its own TBB (else numba warns).
+    import numba
+
+    print(
+        f"room, 640x480 z-depth frames; rangefuse tiles {args.tile_size}^3, mapping mode, "
+        f"eps 2 voxels; Open3D VoxelBlockGrid 8^3 blocks, trunc {TRUNC_VOXELS:g} voxels; "
+        f"{numba.get_num_threads()} numba threads, {os.cpu_count()} CPUs"
+    )
+    header = (
+        f"{'voxel':>6} {'frames':>6} {'rf s':>7} {'rf f/s':>7} {'o3d s':>7} {'o3d f/s':>7} "
+        f"{'ratio':>6} {'rf MB':>7} {'o3d MB':>7} {'tiles':>7} {'blocks':>7}"
+    )
+    print(header)
+    print("-" * len(header))
+    for voxel_m in voxels:
+        compare(frames, voxel_m, args.tile_size, lambda line: print(line, flush=True))
+    print(
+        "ratio = rangefuse frames/s / Open3D frames/s; MB = peak RSS of the process during "
+        "that run (frames included)"
+    )
+
+
+if __name__ == "__main__":
+    main()
