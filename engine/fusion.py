@@ -32,7 +32,7 @@ from .scans import FusionParams, PreparedScan, Scan, prepare_scan
 from .tiling import FREE, OUT, classify_tiles, tiles_touched
 from .volume import DenseGrid, MemoryTileStore, TileStore, dense_logodds
 
-__all__ = ["IntegrationReport", "Volume", "integrate_tiles"]
+__all__ = ["IntegrationReport", "Volume", "integrate_seen", "integrate_tiles"]
 
 Progress = Callable[[int, int], None]
 
@@ -150,10 +150,10 @@ def integrate_tiles(
     rows = np.arange(len(keys), dtype=np.int64) if rows is None else np.asarray(rows, np.int64)
     status = classify_tiles(scan, grid, keys[rows])
     seen = status != OUT
-    return _integrate_seen(scan, grid, keys, data, rows[seen], status[seen] == FREE, sign)
+    return integrate_seen(scan, grid, keys, data, rows[seen], status[seen] == FREE, sign)
 
 
-def _integrate_seen(
+def integrate_seen(
     scan: PreparedScan,
     grid: GridSpec,
     keys: np.ndarray,
@@ -162,7 +162,8 @@ def _integrate_seen(
     free: np.ndarray,
     sign: int,
 ) -> np.ndarray:
-    """:func:`integrate_tiles` on rows already classified (in view; ``free`` per row)."""
+    """:func:`integrate_tiles` on rows already classified by :func:`classify_tiles` as in
+    view (``free[n]``: the scan sees row ``rows[n]`` as free space throughout)."""
     informed = np.zeros(len(keys), np.int64)
     if len(rows):
         kernel = _integrate_kernel(scan.kind, scan.shape)
@@ -316,7 +317,7 @@ class Volume:
             if len(to_load):
                 data[to_load] = self.store.read(keys[to_load])
                 loaded[to_load] = True
-            informed = _integrate_seen(
+            informed = integrate_seen(
                 prepared, grid, keys, data, rows, status[status != OUT] == FREE, 1
             )
             changed |= informed > 0
@@ -354,7 +355,7 @@ class Volume:
         status = classify_tiles(prepared, self.grid, keys[kept])
         rows = kept[status != OUT]
         data = self.store.read(keys[rows])
-        informed = _integrate_seen(
+        informed = integrate_seen(
             prepared,
             self.grid,
             keys[rows],

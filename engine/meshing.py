@@ -23,7 +23,7 @@ substituted corner are *inferred*; the others are *observed*.
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,7 +40,15 @@ from .scans import FusionParams, PreparedScan
 from .tiling import FREE, OUT, classify_tiles
 from .volume import TileStore
 
-__all__ = ["Mesh", "TileMeshes", "extract_mesh", "mesh_tiles", "stitch"]
+__all__ = [
+    "Mesh",
+    "TileMeshes",
+    "extract_mesh",
+    "mesh_region",
+    "mesh_tiles",
+    "stitch",
+    "tiles_to_mesh",
+]
 
 _COUNT_MASK = (1 << COUNT_BITS) - 1
 _FAR = 1 << 40  # voxel index bound of "no region of interest"
@@ -404,7 +412,7 @@ def _refine(
     v_off: np.ndarray,
     vkey: np.ndarray,
     vknown: np.ndarray,
-    scans: Sequence[PreparedScan],
+    scans: Iterable[PreparedScan],
     grid: GridSpec,
     n_samples: int,
 ) -> np.ndarray:
@@ -451,7 +459,7 @@ def pack_value(q: int) -> int:
 # which tiles, and their data
 
 
-def _region(grid: GridSpec, bounds_m: Sequence[float] | None) -> tuple[np.ndarray, np.ndarray]:
+def mesh_region(grid: GridSpec, bounds_m: Sequence[float] | None) -> tuple[np.ndarray, np.ndarray]:
     if bounds_m is not None:
         box: Bounds = tuple(float(x) for x in bounds_m)  # type: ignore[assignment]
         return GridSpec(grid.voxel_size_m, grid.tile_size_vox, "mapping", box).roi_voxels()
@@ -463,7 +471,7 @@ def _region(grid: GridSpec, bounds_m: Sequence[float] | None) -> tuple[np.ndarra
 _NEIGHBOURS = np.array([[d & 1, (d >> 1) & 1, (d >> 2) & 1] for d in range(8)], np.int64)
 
 
-def _tiles_to_mesh(
+def tiles_to_mesh(
     existing: np.ndarray, grid: GridSpec, lo: np.ndarray, hi: np.ndarray
 ) -> np.ndarray:
     """Tiles whose cubes may hold faces."""
@@ -517,7 +525,7 @@ def mesh_tiles(
     store: TileStore,
     grid: GridSpec,
     params: FusionParams,
-    scans: Sequence[PreparedScan],
+    scans: Iterable[PreparedScan],
     keys: np.ndarray | None = None,
     *,
     refine: bool = True,
@@ -531,9 +539,9 @@ def mesh_tiles(
     store, grid, params
         The fused volume and its fusion parameters (closed mode gives unknown voxels the
         value of one scan's ``logit(1 - rho)``, voxels outside the region ``logit(rho)``).
-    scans : sequence of PreparedScan
-        Every scan fused into the volume (edge refinement re-evaluates them; unused
-        without ``refine``).
+    scans : iterable of PreparedScan
+        Every scan fused into the volume that may inform these tiles (edge refinement
+        re-evaluates them, iterating once; unused without ``refine``).
     keys : int64 (t, 3), optional
         The tiles to mesh (default: every tile that may hold faces).
     refine : bool
@@ -545,10 +553,10 @@ def mesh_tiles(
     """
     T = grid.tile_size_vox
     closed = grid.mode == "closed"
-    lo, hi = _region(grid, bounds_m)
+    lo, hi = mesh_region(grid, bounds_m)
     existing = store.keys()
     if keys is None:
-        keys = _tiles_to_mesh(existing, grid, lo, hi)
+        keys = tiles_to_mesh(existing, grid, lo, hi)
     keys = unique_keys(np.asarray(keys, np.int64).reshape(-1, 3))
     wanted = unique_keys(
         np.concatenate([np.zeros((0, 3), np.int64)] + [keys + d for d in _NEIGHBOURS])
@@ -639,7 +647,7 @@ def extract_mesh(
     store: TileStore,
     grid: GridSpec,
     params: FusionParams,
-    scans: Sequence[PreparedScan],
+    scans: Iterable[PreparedScan],
     *,
     refine: bool = True,
     bounds_m: Sequence[float] | None = None,

@@ -40,7 +40,15 @@ from .defaults import BAND_MARGIN_VOX
 from .grid import GridSpec, unique_keys
 from .scans import PreparedScan
 
-__all__ = ["FREE", "OUT", "PARTIAL", "classify_tiles", "tiles_in_view", "tiles_touched"]
+__all__ = [
+    "FREE",
+    "OUT",
+    "PARTIAL",
+    "classify_tiles",
+    "reach_radius",
+    "tiles_in_view",
+    "tiles_touched",
+]
 
 OUT = 0
 PARTIAL = 1
@@ -737,7 +745,7 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
 # allocation: closed mode, and the common entry point
 
 
-def _reach_radius(scan: PreparedScan) -> float:
+def reach_radius(scan: PreparedScan) -> float:
     """Distance from the sensor origin beyond which the scan informs nothing (inf if unbounded)."""
     p = scan.params
     if scan.kind == _k.SPHERICAL:
@@ -757,7 +765,7 @@ def _reach_radius(scan: PreparedScan) -> float:
 
 def _roi_tiles_in_view(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
     lo, hi = grid.roi_tiles()
-    radius = _reach_radius(scan)
+    radius = reach_radius(scan)
     if math.isfinite(radius):
         tile_m = grid.tile_size_m
         o = scan.origin_W

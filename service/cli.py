@@ -11,11 +11,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
-import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -33,67 +31,23 @@ from engine import (
 )
 from engine.certainty import SHAPES
 from engine.defaults import EPS_PER_VOXEL, RHO, TILE_SIZE_VOX
-from storage import DatasetError, open_dataset, write_dataset, write_grid
-from storage.meshes import MeshFormatError, mesh_format, write_mesh
+from storage import DatasetError, open_dataset, write_dataset
+from storage.scene import CACHE_MB, StoreError
 
+from ._cliutil import (
+    CommandError,
+    add_output_options,
+    check_outputs,
+    check_writable,
+    finite_float,
+    positive_float,
+    positive_int,
+    write_outputs,
+)
 from ._progress import ProgressBar
+from ._store_cli import add_store_commands, fuse_into_store
 
 __all__ = ["main"]
-
-
-class CommandError(Exception):
-    """A user error: printed as ``rangefuse CMD: error: MESSAGE``, exit status 2."""
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(value) and value > 0.0):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
-    return value
-
-
-def _finite_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
-    return value
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
-    return value
-
-
-def _check_writable(path: Path, option: str) -> None:
-    """Fail before any work when ``path`` cannot be written.
-
-    Refuses an existing folder, a parent that is a file, and a folder that does not accept
-    files (probed with a temporary file that leaves nothing behind). Missing parent folders
-    are fine: the writers create them.
-    """
-    if path.is_dir():
-        raise CommandError(f"{option} {path}: is a directory")
-    parent = path.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir():
-        raise CommandError(f"{option} {path}: {parent} is not a directory")
-    try:
-        with tempfile.TemporaryFile(dir=parent):
-            pass
-    except OSError as exc:
-        raise CommandError(f"{option} {path}: cannot write in {parent} ({exc.strerror})") from None
 
 
 # --- synth ------------------------------------------------------------------------------------
@@ -105,7 +59,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     noise = parse_noise(args.noise)
     if args.out.exists() and not args.out.is_dir():
         raise CommandError(f"OUT {args.out}: exists and is not a directory")
-    _check_writable(args.out / "sensor.json", "OUT")
+    check_writable(args.out / "sensor.json", "OUT")
     t0 = time.perf_counter()
     data = make_dataset(
         args.scene, views=args.views, noise=noise, seed=args.seed, length_m=args.length
@@ -152,7 +106,7 @@ def _noise_from_args(args: argparse.Namespace) -> NoiseModel:
     )
 
 
-def _bounds_from_data(scans: Sequence[Scan], noise: NoiseModel, voxel_size: float) -> tuple:
+def _bounds_from_data(scans: Iterable[Scan], noise: NoiseModel, voxel_size: float) -> tuple:
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     max_range = 0.0
@@ -178,19 +132,11 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
         no_return=args.no_return,
     )
     GridSpec(args.voxel_size, args.tile_size, "mapping", args.bounds)  # validate early
-    if args.grid_out is not None:
-        _check_writable(args.grid_out, "--grid-out")
-    if args.output is not None:
-        try:
-            mesh_format(args.output)
-        except MeshFormatError as exc:
-            raise CommandError(f"-o: {exc}") from None
-        _check_writable(args.output, "-o")
+    check_outputs(args)
     t0 = time.perf_counter()
-    scans = list(dataset.scans())
     bounds = tuple(args.bounds) if args.bounds is not None else None
-    if args.mode == "closed" and bounds is None:
-        bounds = _bounds_from_data([s for _, s in scans], noise, args.voxel_size)
+    if args.mode == "closed" and bounds is None:  # reads the scans one at a time
+        bounds = _bounds_from_data((s for _, s in dataset.scans()), noise, args.voxel_size)
         if not args.quiet:
             print(
                 "closed mode: region of interest from the data: "
@@ -198,6 +144,9 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
     grid = GridSpec(args.voxel_size, args.tile_size, args.mode, bounds)
+    if args.store is not None:
+        return fuse_into_store(args, args.dataset, grid, params)
+    scans = list(dataset.scans())
     volume = Volume(grid, params)
     bar = ProgressBar("fuse", enabled=not args.quiet)
     try:
@@ -210,26 +159,9 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
         f"fused {report.scans} scans into {n_tiles} tiles of {grid.tile_size_vox}^3 voxels "
         f"({report.voxel_updates:,} voxel updates) in {elapsed:.2f} s"
     )
-    if args.grid_out is not None:
-        dense = volume.to_dense(args.bounds)
-        try:
-            write_grid(args.grid_out, dense)
-        except OSError as exc:
-            raise CommandError(f"--grid-out {args.grid_out}: cannot write ({exc})") from None
-        print(f"wrote {'x'.join(map(str, dense.logodds.shape))} grid to {args.grid_out}")
-    if args.output is not None:
-        t0 = time.perf_counter()
-        mesh = volume.extract_mesh(refine=not args.no_refine, bounds_m=args.bounds)
-        elapsed = time.perf_counter() - t0
-        try:
-            write_mesh(args.output, mesh)
-        except OSError as exc:
-            raise CommandError(f"-o {args.output}: cannot write ({exc})") from None
-        inferred = int(mesh.inferred.sum())
-        print(
-            f"wrote {mesh.n_faces:,} triangles ({inferred:,} inferred), {mesh.n_vertices:,} "
-            f"vertices to {args.output} (extracted in {elapsed:.2f} s)"
-        )
+    write_outputs(
+        args, volume.to_dense, lambda refine, b: volume.extract_mesh(refine=refine, bounds_m=b)
+    )
     return 0
 
 
@@ -249,7 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("out", type=Path, metavar="OUT", help="dataset folder to write")
     synth.add_argument(
         "--views",
-        type=_positive_int,
+        type=positive_int,
         default=None,
         help="number of scans (default: 12 object, 100 room, one per 2 m street)",
     )
@@ -262,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--seed", type=int, default=0, help="seed of the noise (default 0)")
     synth.add_argument(
         "--length",
-        type=_positive_float,
+        type=positive_float,
         default=None,
         help="street length in metres (street only; default 40)",
     )
@@ -272,14 +204,14 @@ def build_parser() -> argparse.ArgumentParser:
     fuse.add_argument("dataset", type=Path, metavar="DATASET")
     fuse.add_argument(
         "--voxel-size",
-        type=_positive_float,
+        type=positive_float,
         required=True,
         metavar="M",
         help="voxel edge in metres",
     )
     fuse.add_argument(
         "--bounds",
-        type=_finite_float,
+        type=finite_float,
         nargs=6,
         default=None,
         metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
@@ -294,14 +226,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fuse.add_argument(
         "--tile-size",
-        type=_positive_int,
+        type=positive_int,
         default=TILE_SIZE_VOX,
         metavar="N",
         help=f"voxels per tile edge (default {TILE_SIZE_VOX})",
     )
     fuse.add_argument(
         "--eps",
-        type=_positive_float,
+        type=positive_float,
         default=None,
         metavar="M",
         help=f"noise half-width in metres (default {EPS_PER_VOXEL:g} voxels)",
@@ -322,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fuse.add_argument(
         "--falloff",
-        type=_positive_float,
+        type=positive_float,
         default=None,
         metavar="M",
         help="fall-off behind the surface in metres (default: eps)",
@@ -335,7 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fuse.add_argument(
         "--max-discontinuity",
-        type=_positive_float,
+        type=positive_float,
         default=None,
         metavar="M",
         help="ignore points whose four neighbouring ranges spread by more",
@@ -347,30 +279,25 @@ def build_parser() -> argparse.ArgumentParser:
         help="no-return pixels carve free space up to max_range (free, default) "
         "or are ignored (invalid)",
     )
+    add_output_options(fuse)
     fuse.add_argument(
-        "--grid-out",
+        "--store",
         type=Path,
         default=None,
-        metavar="GRID.npz",
-        help="write the fused log-odds densely (FORMAT.md; NaN = unknown)",
+        metavar="DIR",
+        help="fuse into a persistent store (created if missing; re-running resumes and adds "
+        "the scans it does not hold yet)",
     )
     fuse.add_argument(
-        "-o",
-        "--output",
-        type=Path,
-        default=None,
-        metavar="MESH",
-        help="write the surface as a mesh: .ply (binary, with an 'inferred' face flag), "
-        ".obj, .glb or .stl",
-    )
-    fuse.add_argument(
-        "--no-refine",
-        action="store_true",
-        help="place vertices by linear interpolation of the log-odds instead of re-evaluating "
-        "the scans along each edge (faster, less accurate)",
+        "--cache-mb",
+        type=positive_float,
+        default=CACHE_MB,
+        metavar="MB",
+        help=f"with --store: memory budget of the tile cache (default {CACHE_MB})",
     )
     fuse.add_argument("--quiet", action="store_true", help="no progress bar")
     fuse.set_defaults(func=_cmd_fuse)
+    add_store_commands(sub)
     return parser
 
 
@@ -379,7 +306,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
-    except (CommandError, InvalidInputError, DatasetError) as exc:
+    except (CommandError, InvalidInputError, DatasetError, StoreError) as exc:
         print(f"rangefuse {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -1,6 +1,8 @@
-"""rangefuse storage: bytes on disk (dataset folders, grid files; the Zarr volume and the
-catalog come with the storage issue). Imports ``engine``, never ``service``."""
+"""rangefuse storage: bytes on disk (dataset folders, grid and mesh files, persistent scenes:
+Zarr tiles, the scan archive and the SQLite catalog). Imports ``engine``, never ``service``."""
 
+from .archive import ArchiveError, ScanArchive
+from .catalog import Catalog, CatalogError
 from .dataset import (
     Dataset,
     DatasetError,
@@ -10,11 +12,32 @@ from .dataset import (
     write_scan_file,
 )
 from .grids import read_grid, write_grid
+from .scene import (
+    Scene,
+    SceneConflictError,
+    StoreError,
+    StoreLockedError,
+    StoreVersionError,
+    open_store,
+)
+from .zarr_tiles import TileArrayError, ZarrTiles
 
 __all__ = [
+    "ArchiveError",
+    "Catalog",
+    "CatalogError",
     "Dataset",
     "DatasetError",
+    "ScanArchive",
+    "Scene",
+    "SceneConflictError",
+    "StoreError",
+    "StoreLockedError",
+    "StoreVersionError",
+    "TileArrayError",
+    "ZarrTiles",
     "open_dataset",
+    "open_store",
     "read_grid",
     "read_scan_file",
     "write_dataset",

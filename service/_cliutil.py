@@ -1,0 +1,135 @@
+"""Helpers shared by the command-line modules: user errors, argument types, outputs."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from engine import DenseGrid
+from engine.meshing import Mesh
+from storage import write_grid
+from storage.meshes import MeshFormatError, mesh_format, write_mesh
+
+
+class CommandError(Exception):
+    """A user error: printed as ``rangefuse CMD: error: MESSAGE``, exit status 2."""
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(value) and value > 0.0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return value
+
+
+def finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
+    return value
+
+
+def check_writable(path: Path, option: str) -> None:
+    """Fail before any work when ``path`` cannot be written.
+
+    Refuses an existing folder, a parent that is a file, and a folder that does not accept
+    files (probed with a temporary file that leaves nothing behind). Missing parent folders
+    are fine: the writers create them.
+    """
+    if path.is_dir():
+        raise CommandError(f"{option} {path}: is a directory")
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise CommandError(f"{option} {path}: {parent} is not a directory")
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as exc:
+        raise CommandError(f"{option} {path}: cannot write in {parent} ({exc.strerror})") from None
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """Refuse unwritable ``--grid-out`` / ``-o`` paths and unknown mesh types before work."""
+    if getattr(args, "grid_out", None) is not None:
+        check_writable(args.grid_out, "--grid-out")
+    if getattr(args, "output", None) is not None:
+        try:
+            mesh_format(args.output)
+        except MeshFormatError as exc:
+            raise CommandError(f"-o: {exc}") from None
+        check_writable(args.output, "-o")
+
+
+def write_outputs(
+    args: argparse.Namespace,
+    to_dense: Callable[[Sequence[float] | None], DenseGrid],
+    extract_mesh: Callable[[bool, Sequence[float] | None], Mesh],
+) -> None:
+    """Write ``--grid-out`` and ``-o`` when asked (the region: ``--bounds`` if given)."""
+    if args.grid_out is not None:
+        dense = to_dense(args.bounds)
+        try:
+            write_grid(args.grid_out, dense)
+        except OSError as exc:
+            raise CommandError(f"--grid-out {args.grid_out}: cannot write ({exc})") from None
+        print(f"wrote {'x'.join(map(str, dense.logodds.shape))} grid to {args.grid_out}")
+    if args.output is not None:
+        t0 = time.perf_counter()
+        mesh = extract_mesh(not args.no_refine, args.bounds)
+        elapsed = time.perf_counter() - t0
+        try:
+            write_mesh(args.output, mesh)
+        except OSError as exc:
+            raise CommandError(f"-o {args.output}: cannot write ({exc})") from None
+        inferred = int(mesh.inferred.sum())
+        print(
+            f"wrote {mesh.n_faces:,} triangles ({inferred:,} inferred), {mesh.n_vertices:,} "
+            f"vertices to {args.output} (extracted in {elapsed:.2f} s)"
+        )
+
+
+def add_output_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--grid-out",
+        type=Path,
+        default=None,
+        metavar="GRID.npz",
+        help="write the fused log-odds densely (FORMAT.md; NaN = unknown)",
+    )
+    parser.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=None,
+        metavar="MESH",
+        help="write the surface as a mesh: .ply (binary, with an 'inferred' face flag), "
+        ".obj, .glb or .stl",
+    )
+    parser.add_argument(
+        "--no-refine",
+        action="store_true",
+        help="place vertices by linear interpolation of the log-odds instead of re-evaluating "
+        "the scans along each edge (faster, less accurate)",
+    )

@@ -1,0 +1,225 @@
+"""Command-line verbs on a persistent store (``docs/storage.md``).
+
+``rangefuse fuse DATASET --store DIR`` creates or reopens the store's scene and fuses every
+scan of the dataset it does not hold yet (named by file stem), so re-running after a crash
+resumes; ``add``, ``remove``, ``extract`` and ``info`` work on an existing store.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+from engine import FusionParams, GridSpec, Scan
+from engine.meshing import Mesh
+from storage import open_dataset
+from storage.dataset import read_scan_file
+from storage.scene import CACHE_MB, Scene, open_store
+
+from ._cliutil import (
+    CommandError,
+    add_output_options,
+    check_outputs,
+    finite_float,
+    positive_float,
+    write_outputs,
+)
+from ._progress import ProgressBar
+
+__all__ = ["add_store_commands", "fuse_into_store"]
+
+
+def _announce_recovery(scene: Scene) -> None:
+    r = scene.recovered
+    if r["rebuilt_tiles"] or r["orphan_scans"] or r["removals_resumed"] or r["temporaries"]:
+        print(
+            f"recovered an interrupted run: rebuilt {r['rebuilt_tiles']} tiles, removed "
+            f"{r['orphan_scans']} unacknowledged scans and {r['partials']} partial chunk files, "
+            f"resumed {r['removals_resumed']} removals"
+        )
+
+
+def _store_and_integrate(
+    scene: Scene, items: Iterable[tuple[str, Scan]], quiet: bool, label: str
+) -> None:
+    t0 = time.perf_counter()
+    stored = 0
+    for scan_id, scan in items:
+        if scan_id in scene:
+            continue
+        scene.store_scan(scan_id, scan, name=scan_id)
+        stored += 1
+        print(f"stored {scan_id}", flush=True)  # the acknowledgement: durable from here on
+    pending = len(scene.scan_rows(("stored",)))
+    bar = ProgressBar(label, enabled=not quiet)
+    try:
+        report = scene.integrate_pending(progress=bar)
+    finally:
+        bar.close()
+    info = scene.catalog.n_tiles(scene.scene_id)
+    print(
+        f"{stored} new scans stored; fused {pending} into {info} tiles of "
+        f"{scene.grid.tile_size_vox}^3 voxels ({report.voxel_updates:,} voxel updates, "
+        f"{report.tiles_written} tiles written) in {time.perf_counter() - t0:.2f} s"
+    )
+
+
+def _write_scene_outputs(args: argparse.Namespace, scene: Scene) -> None:
+    def mesh(refine: bool, bounds: Sequence[float] | None) -> Mesh:
+        result, counts = scene.extract_mesh(refine=refine, bounds_m=bounds)
+        print(
+            f"meshed {counts['meshed']} tiles, reused {counts['reused']} cached tile meshes "
+            f"of {counts['tiles']}"
+        )
+        return result
+
+    write_outputs(args, scene.to_dense, mesh)
+
+
+def fuse_into_store(
+    args: argparse.Namespace,
+    dataset_path: Path,
+    grid: GridSpec,
+    params: FusionParams,
+) -> int:
+    """``rangefuse fuse DATASET --store DIR``."""
+    dataset = open_dataset(dataset_path)
+    with open_store(args.store, grid, params, cache_mb=args.cache_mb) as scene:
+        _announce_recovery(scene)
+        _store_and_integrate(scene, dataset.scans(), args.quiet, "fuse")
+        _write_scene_outputs(args, scene)
+    return 0
+
+
+def _open_existing(args: argparse.Namespace) -> Scene:
+    path = Path(args.store)
+    if not path.exists():
+        raise CommandError(f"{path}: no such store")
+    scene = open_store(path, cache_mb=getattr(args, "cache_mb", CACHE_MB))
+    _announce_recovery(scene)
+    return scene
+
+
+def _sensor_file_for(scan_path: Path, explicit: Path | None) -> Path | None:
+    if explicit is not None:
+        return explicit
+    for folder in (scan_path.parent, scan_path.parent.parent):
+        if (folder / "sensor.json").is_file():
+            return folder / "sensor.json"
+    return None
+
+
+def _cmd_add(args: argparse.Namespace) -> int:
+    from engine import sensor_from_dict
+
+    scans = []
+    for path in args.scans:
+        sensor_path = _sensor_file_for(path, args.sensor)
+        default = None
+        if sensor_path is not None:
+            try:
+                default = sensor_from_dict(json.loads(sensor_path.read_text()))
+            except (OSError, ValueError) as exc:
+                raise CommandError(f"{sensor_path}: not a usable sensor.json ({exc})") from None
+        scans.append((path.stem, read_scan_file(path, default)))  # all read before storing
+    with _open_existing(args) as scene:
+        duplicate = [s for s, _ in scans if s in scene]
+        if duplicate:
+            raise CommandError(f"the store already holds a scan named {duplicate[0]!r}")
+        _store_and_integrate(scene, scans, args.quiet, "add")
+    return 0
+
+
+def _cmd_remove(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+    with _open_existing(args) as scene:
+        if args.scan_id not in scene:
+            raise CommandError(f"the store holds no scan {args.scan_id!r}")
+        report = scene.remove(args.scan_id)
+    print(
+        f"removed scan {args.scan_id}: updated {report.tiles_written} tiles, deleted "
+        f"{report.tiles_deleted} in {time.perf_counter() - t0:.2f} s"
+    )
+    return 0
+
+
+def _cmd_extract(args: argparse.Namespace) -> int:
+    if args.output is None and args.grid_out is None:
+        raise CommandError("nothing to write: give -o MESH and/or --grid-out GRID.npz")
+    check_outputs(args)
+    with _open_existing(args) as scene:
+        if scene.scan_rows(("stored",)):
+            print("note: some scans are stored but not fused yet; run `rangefuse add` or fuse")
+        _write_scene_outputs(args, scene)
+    return 0
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    with _open_existing(args) as scene:
+        info = scene.info()
+    if args.json:
+        print(json.dumps(info, indent=1))
+        return 0
+    states = ", ".join(f"{n} {s}" for s, n in sorted(info["scan_states"].items())) or "none"
+    grid = info["grid"]
+    print(f"store      {info['store']} (layout version {info['version']})")
+    print(f"scans      {info['scans']} ({states})")
+    print(f"tiles      {info['tiles']} of {grid['tile_size_vox']}^3 voxels")
+    print(f"voxel      {grid['voxel_size_m']} m, mode {grid['mode']}, bounds {grid['bounds_m']}")
+    print(f"on disk    {info['bytes_on_disk'] / 2**20:.1f} MiB")
+    return 0
+
+
+def add_store_commands(sub: argparse._SubParsersAction) -> None:
+    """Register ``add``, ``remove``, ``extract`` and ``info``."""
+    add = sub.add_parser("add", help="add scan files to a store and fuse them")
+    add.add_argument("store", type=Path, metavar="DIR")
+    add.add_argument("scans", type=Path, nargs="+", metavar="SCAN.npz")
+    add.add_argument(
+        "--sensor",
+        type=Path,
+        default=None,
+        metavar="sensor.json",
+        help="sensor of scans that hold none (default: sensor.json beside or above them)",
+    )
+    _cache_option(add)
+    add.add_argument("--quiet", action="store_true", help="no progress bar")
+    add.set_defaults(func=_cmd_add)
+
+    remove = sub.add_parser("remove", help="remove a scan from a store (exactly)")
+    remove.add_argument("store", type=Path, metavar="DIR")
+    remove.add_argument("scan_id", metavar="SCAN_ID")
+    _cache_option(remove)
+    remove.set_defaults(func=_cmd_remove)
+
+    extract = sub.add_parser("extract", help="write a store's mesh and/or dense grid")
+    extract.add_argument("store", type=Path, metavar="DIR")
+    add_output_options(extract)
+    extract.add_argument(
+        "--bounds",
+        type=finite_float,
+        nargs=6,
+        default=None,
+        metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
+        help="only this box (world metres)",
+    )
+    _cache_option(extract)
+    extract.set_defaults(func=_cmd_extract)
+
+    info = sub.add_parser("info", help="describe a store: scans, tiles, bytes, version")
+    info.add_argument("store", type=Path, metavar="DIR")
+    info.add_argument("--json", action="store_true", help="print JSON")
+    info.set_defaults(func=_cmd_info)
+
+
+def _cache_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--cache-mb",
+        type=positive_float,
+        default=CACHE_MB,
+        metavar="MB",
+        help=f"memory budget of the tile cache (default {CACHE_MB})",
+    )

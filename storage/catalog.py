@@ -1,0 +1,371 @@
+"""The catalog: scenes, scans, which scans inform which tiles, the tile journal, jobs.
+
+One SQLite file per store (``docs/storage.md``), opened in WAL mode with
+``synchronous=FULL``: a committed transaction survives a kill -9 and a power loss. Tiles
+are identified by their packed key (:func:`engine.grid.pack_keys`).
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["CATALOG_VERSION", "Catalog", "CatalogError", "ScanRow", "SceneRow"]
+
+CATALOG_VERSION = 1
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS scenes(
+    id TEXT PRIMARY KEY, name TEXT NOT NULL, tenant TEXT NOT NULL,
+    grid TEXT NOT NULL, params TEXT NOT NULL, created_at REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS scans(
+    scene_id TEXT NOT NULL, id TEXT NOT NULL, seq INTEGER NOT NULL, name TEXT,
+    state TEXT NOT NULL, ox REAL NOT NULL, oy REAL NOT NULL, oz REAL NOT NULL,
+    reach_m REAL NOT NULL, checksum TEXT NOT NULL, created_at REAL NOT NULL,
+    PRIMARY KEY(scene_id, id));
+CREATE UNIQUE INDEX IF NOT EXISTS scans_seq ON scans(scene_id, seq);
+CREATE TABLE IF NOT EXISTS tile_scans(
+    scene_id TEXT NOT NULL, tile INTEGER NOT NULL, scan_id TEXT NOT NULL,
+    owner INTEGER NOT NULL, PRIMARY KEY(scene_id, tile, scan_id)) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS tile_scans_scan ON tile_scans(scene_id, scan_id);
+CREATE TABLE IF NOT EXISTS journal(
+    scene_id TEXT NOT NULL, tile INTEGER NOT NULL, PRIMARY KEY(scene_id, tile)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS tile_epochs(
+    scene_id TEXT NOT NULL, tile INTEGER NOT NULL, epoch INTEGER NOT NULL,
+    PRIMARY KEY(scene_id, tile)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS mesh_cache(
+    scene_id TEXT NOT NULL, tile INTEGER NOT NULL, options TEXT NOT NULL,
+    epoch INTEGER NOT NULL, data BLOB NOT NULL,
+    PRIMARY KEY(scene_id, tile, options)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS jobs(
+    id TEXT PRIMARY KEY, scene_id TEXT, kind TEXT NOT NULL, state TEXT NOT NULL,
+    progress REAL NOT NULL, error TEXT, payload TEXT NOT NULL,
+    created_at REAL NOT NULL, finished_at REAL);
+"""
+
+#: States of a scan: archived and acknowledged; fused into the tiles; being removed.
+SCAN_STATES = ("stored", "fused", "removing")
+
+
+class CatalogError(RuntimeError):
+    """The catalog file is unusable (another layout version, not a catalog)."""
+
+
+@dataclass(frozen=True)
+class SceneRow:
+    id: str
+    name: str
+    tenant: str
+    grid: dict[str, Any]
+    params: dict[str, Any]
+    created_at: float
+
+
+@dataclass(frozen=True)
+class ScanRow:
+    id: str
+    seq: int
+    name: str | None
+    state: str
+    origin: tuple[float, float, float]
+    reach_m: float
+    checksum: str
+    created_at: float
+
+
+def _packed(tiles: np.ndarray | Sequence[int]) -> list[int]:
+    return [int(t) for t in np.asarray(tiles, np.int64).reshape(-1)]
+
+
+class Catalog:
+    """The SQLite catalog of a store. Not shared between threads; one writer process."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        try:
+            self._db = sqlite3.connect(self.path, isolation_level=None, timeout=30.0)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.executescript(_SCHEMA)
+            row = self._db.execute("SELECT value FROM meta WHERE key='version'").fetchone()
+        except sqlite3.DatabaseError as exc:
+            raise CatalogError(f"{self.path}: not a rangefuse catalog ({exc})") from None
+        if row is None:
+            self._db.execute(
+                "INSERT INTO meta(key, value) VALUES('version', ?)", (str(CATALOG_VERSION),)
+            )
+        elif row[0] != str(CATALOG_VERSION):
+            raise CatalogError(
+                f"{self.path}: catalog version {row[0]}, this rangefuse reads version "
+                f"{CATALOG_VERSION}"
+            )
+        self._depth = 0
+
+    def close(self) -> None:
+        self._db.close()
+
+    # --- transactions -------------------------------------------------------------------------
+    @contextmanager
+    def transaction(self) -> Iterator[None]:
+        """Everything inside commits together (nested uses join the outer one)."""
+        if self._depth:
+            self._depth += 1
+            try:
+                yield
+            finally:
+                self._depth -= 1
+            return
+        self._db.execute("BEGIN IMMEDIATE")
+        self._depth = 1
+        try:
+            yield
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        else:
+            self._db.execute("COMMIT")
+        finally:
+            self._depth = 0
+
+    # --- scenes -------------------------------------------------------------------------------
+    def create_scene(
+        self, scene_id: str, name: str, tenant: str, grid: dict[str, Any], params: dict[str, Any]
+    ) -> SceneRow:
+        now = time.time()
+        self._db.execute(
+            "INSERT INTO scenes(id, name, tenant, grid, params, created_at) VALUES(?,?,?,?,?,?)",
+            (scene_id, name, tenant, json.dumps(grid), json.dumps(params), now),
+        )
+        return SceneRow(scene_id, name, tenant, grid, params, now)
+
+    def scene(self, scene_id: str) -> SceneRow | None:
+        row = self._db.execute(
+            "SELECT id, name, tenant, grid, params, created_at FROM scenes WHERE id=?", (scene_id,)
+        ).fetchone()
+        return None if row is None else self._scene_row(row)
+
+    def scenes(self, tenant: str | None = None) -> list[SceneRow]:
+        sql = "SELECT id, name, tenant, grid, params, created_at FROM scenes"
+        args: tuple[Any, ...] = ()
+        if tenant is not None:
+            sql += " WHERE tenant=?"
+            args = (tenant,)
+        return [self._scene_row(r) for r in self._db.execute(sql + " ORDER BY created_at", args)]
+
+    @staticmethod
+    def _scene_row(row: tuple[Any, ...]) -> SceneRow:
+        return SceneRow(row[0], row[1], row[2], json.loads(row[3]), json.loads(row[4]), row[5])
+
+    def delete_scene(self, scene_id: str) -> None:
+        with self.transaction():
+            for table in ("scans", "tile_scans", "journal", "tile_epochs", "mesh_cache"):
+                self._db.execute(f"DELETE FROM {table} WHERE scene_id=?", (scene_id,))
+            self._db.execute("DELETE FROM scenes WHERE id=?", (scene_id,))
+
+    # --- scans --------------------------------------------------------------------------------
+    def add_scan(
+        self,
+        scene_id: str,
+        scan_id: str,
+        name: str | None,
+        origin: Sequence[float],
+        reach_m: float,
+        checksum: str,
+    ) -> int:
+        """Insert a scan in state ``stored``; returns its sequence number."""
+        with self.transaction():
+            row = self._db.execute(
+                "SELECT COALESCE(MAX(seq), 0) + 1 FROM scans WHERE scene_id=?", (scene_id,)
+            ).fetchone()
+            seq = int(row[0])
+            self._db.execute(
+                "INSERT INTO scans(scene_id, id, seq, name, state, ox, oy, oz, reach_m, checksum,"
+                " created_at) VALUES(?,?,?,?,?,?,?,?,?,?,?)",
+                (
+                    scene_id,
+                    scan_id,
+                    seq,
+                    name,
+                    "stored",
+                    float(origin[0]),
+                    float(origin[1]),
+                    float(origin[2]),
+                    float(reach_m),
+                    checksum,
+                    time.time(),
+                ),
+            )
+        return seq
+
+    _SCAN_COLUMNS = "id, seq, name, state, ox, oy, oz, reach_m, checksum, created_at"
+
+    @staticmethod
+    def _scan_row(r: tuple[Any, ...]) -> ScanRow:
+        return ScanRow(r[0], r[1], r[2], r[3], (r[4], r[5], r[6]), r[7], r[8], r[9])
+
+    def scan(self, scene_id: str, scan_id: str) -> ScanRow | None:
+        row = self._db.execute(
+            f"SELECT {self._SCAN_COLUMNS} FROM scans WHERE scene_id=? AND id=?",
+            (scene_id, scan_id),
+        ).fetchone()
+        return None if row is None else self._scan_row(row)
+
+    def scans(self, scene_id: str, states: Sequence[str] | None = None) -> list[ScanRow]:
+        """Scans in sequence order, optionally only those in ``states``."""
+        rows = self._db.execute(
+            f"SELECT {self._SCAN_COLUMNS} FROM scans WHERE scene_id=? ORDER BY seq", (scene_id,)
+        )
+        out = [self._scan_row(r) for r in rows]
+        return out if states is None else [s for s in out if s.state in states]
+
+    def set_scan_state(self, scene_id: str, scan_ids: Sequence[str], state: str) -> None:
+        if state not in SCAN_STATES:
+            raise ValueError(f"unknown scan state {state!r}")
+        self._db.executemany(
+            "UPDATE scans SET state=? WHERE scene_id=? AND id=?",
+            [(state, scene_id, s) for s in scan_ids],
+        )
+
+    def delete_scan(self, scene_id: str, scan_id: str) -> None:
+        self._db.execute("DELETE FROM scans WHERE scene_id=? AND id=?", (scene_id, scan_id))
+
+    # --- tiles --------------------------------------------------------------------------------
+    def tile_keys(self, scene_id: str) -> np.ndarray:
+        """Packed keys of the tiles that exist (have an owner), sorted."""
+        rows = self._db.execute(
+            "SELECT DISTINCT tile FROM tile_scans WHERE scene_id=? AND owner=1 ORDER BY tile",
+            (scene_id,),
+        ).fetchall()
+        return np.array([r[0] for r in rows], np.int64)
+
+    def n_tiles(self, scene_id: str) -> int:
+        row = self._db.execute(
+            "SELECT COUNT(DISTINCT tile) FROM tile_scans WHERE scene_id=? AND owner=1",
+            (scene_id,),
+        ).fetchone()
+        return int(row[0])
+
+    def tile_scans(self, scene_id: str, tiles: np.ndarray) -> dict[int, list[tuple[str, bool]]]:
+        """``{tile: [(scan_id, is_owner), ...]}`` for the given packed keys."""
+        out: dict[int, list[tuple[str, bool]]] = {t: [] for t in _packed(tiles)}
+        for chunk in _chunks(list(out), 500):
+            marks = ",".join("?" * len(chunk))
+            rows = self._db.execute(
+                f"SELECT tile, scan_id, owner FROM tile_scans WHERE scene_id=? AND tile IN "
+                f"({marks})",
+                (scene_id, *chunk),
+            )
+            for tile, scan_id, owner in rows:
+                out[tile].append((scan_id, bool(owner)))
+        return out
+
+    def tiles_of_scan(self, scene_id: str, scan_id: str) -> tuple[np.ndarray, np.ndarray]:
+        """Packed keys of the tiles a scan informs or owns, and whether it owns each."""
+        rows = self._db.execute(
+            "SELECT tile, owner FROM tile_scans WHERE scene_id=? AND scan_id=? ORDER BY tile",
+            (scene_id, scan_id),
+        ).fetchall()
+        return (
+            np.array([r[0] for r in rows], np.int64),
+            np.array([bool(r[1]) for r in rows], np.bool_),
+        )
+
+    def add_tile_scans(
+        self, scene_id: str, scan_id: str, tiles: np.ndarray, owner: np.ndarray
+    ) -> None:
+        self._db.executemany(
+            "INSERT OR REPLACE INTO tile_scans(scene_id, tile, scan_id, owner) VALUES(?,?,?,?)",
+            [
+                (scene_id, t, scan_id, int(o))
+                for t, o in zip(_packed(tiles), np.asarray(owner).tolist(), strict=True)
+            ],
+        )
+
+    def remove_tile_scans(self, scene_id: str, scan_id: str) -> None:
+        self._db.execute(
+            "DELETE FROM tile_scans WHERE scene_id=? AND scan_id=?", (scene_id, scan_id)
+        )
+
+    # --- journal and epochs -------------------------------------------------------------------
+    def journal_add(self, scene_id: str, tiles: np.ndarray) -> None:
+        self._db.executemany(
+            "INSERT OR IGNORE INTO journal(scene_id, tile) VALUES(?,?)",
+            [(scene_id, t) for t in _packed(tiles)],
+        )
+
+    def journal(self, scene_id: str) -> np.ndarray:
+        rows = self._db.execute(
+            "SELECT tile FROM journal WHERE scene_id=? ORDER BY tile", (scene_id,)
+        ).fetchall()
+        return np.array([r[0] for r in rows], np.int64)
+
+    def journal_clear(self, scene_id: str) -> None:
+        self._db.execute("DELETE FROM journal WHERE scene_id=?", (scene_id,))
+
+    def bump_epochs(self, scene_id: str, tiles: np.ndarray) -> None:
+        self._db.executemany(
+            "INSERT INTO tile_epochs(scene_id, tile, epoch) VALUES(?,?,1) "
+            "ON CONFLICT(scene_id, tile) DO UPDATE SET epoch = epoch + 1",
+            [(scene_id, t) for t in _packed(tiles)],
+        )
+
+    def epochs(self, scene_id: str, tiles: np.ndarray) -> np.ndarray:
+        keys = _packed(tiles)
+        found: dict[int, int] = {}
+        for chunk in _chunks(keys, 500):
+            marks = ",".join("?" * len(chunk))
+            for tile, epoch in self._db.execute(
+                f"SELECT tile, epoch FROM tile_epochs WHERE scene_id=? AND tile IN ({marks})",
+                (scene_id, *chunk),
+            ):
+                found[tile] = epoch
+        return np.array([found.get(t, 0) for t in keys], np.int64)
+
+    # --- mesh cache ---------------------------------------------------------------------------
+    def mesh_cache_get(
+        self, scene_id: str, tiles: np.ndarray, options: str
+    ) -> dict[int, tuple[int, bytes]]:
+        out: dict[int, tuple[int, bytes]] = {}
+        for chunk in _chunks(_packed(tiles), 500):
+            marks = ",".join("?" * len(chunk))
+            for tile, epoch, data in self._db.execute(
+                f"SELECT tile, epoch, data FROM mesh_cache WHERE scene_id=? AND options=? "
+                f"AND tile IN ({marks})",
+                (scene_id, options, *chunk),
+            ):
+                out[tile] = (epoch, data)
+        return out
+
+    def mesh_cache_put(
+        self, scene_id: str, options: str, entries: Sequence[tuple[int, int, bytes]]
+    ) -> None:
+        with self.transaction():
+            self._db.executemany(
+                "INSERT OR REPLACE INTO mesh_cache(scene_id, tile, options, epoch, data) "
+                "VALUES(?,?,?,?,?)",
+                [(scene_id, int(t), options, int(e), d) for t, e, d in entries],
+            )
+
+    # --- sizes --------------------------------------------------------------------------------
+    def count(self, table: str, scene_id: str) -> int:
+        if table not in ("scans", "tile_scans", "journal", "mesh_cache"):
+            raise ValueError(table)
+        return int(
+            self._db.execute(
+                f"SELECT COUNT(*) FROM {table} WHERE scene_id=?", (scene_id,)
+            ).fetchone()[0]
+        )
+
+
+def _chunks(items: list[int], n: int) -> Iterator[list[int]]:
+    for start in range(0, len(items), n):
+        yield items[start : start + n]

@@ -1,0 +1,341 @@
+"""The tile array of one scene: one Zarr v3 chunk per tile (docs/storage.md, layout 1).
+
+The array ``tiles`` of a scene's Zarr group holds int64 packed voxels (see
+:mod:`engine.certainty`; 0 is *unknown*, the fill value). Its chunk is one tile ``(T, T, T)``
+and its shape is ``2**21`` tiles per axis: tile key ``k`` (``|k| < 2**20``, may be negative)
+is chunk ``k + 2**20`` on each axis, stored in the file ``tiles/c/<i>/<j>/<k>`` (the default
+chunk key encoding, separator ``/``). A tile of zeros is never stored (its chunk is deleted),
+exactly as zarr does with ``write_empty_chunks=False``.
+
+Chunks are encoded with the ``bytes`` (little endian) and ``zstd`` (level 1, no checksum)
+codecs of the Zarr v3 spec. Tiles are read and written here without zarr's per-call
+machinery (indexing, an event loop round trip and a thread hop per chunk: 3-5x slower); the
+bytes are those zarr itself writes (the tests compare them), and each chunk is still written
+through zarr's ``LocalStore`` (temporary file then rename, so a chunk is never torn; a kill
+leaves ``<chunk>.<32 hex>.partial`` orphans, see :meth:`ZarrTiles.remove_partials`). Zarr never
+fsyncs: :meth:`ZarrTiles.fsync` makes written chunks durable.
+
+Never ask zarr for ``nchunks_initialized`` or to list this array (it walks every possible
+chunk of a huge sparse array); :meth:`ZarrTiles.stored_keys` walks the directory instead.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+import zarr.codecs
+from numcodecs import Zstd
+from zarr.core.buffer import default_buffer_prototype
+from zarr.storage import LocalStore
+
+from engine.grid import KEY_LIMIT, unique_keys
+
+__all__ = ["TILES_ARRAY", "TileArrayError", "ZarrTiles"]
+
+#: Name of the tile array inside a scene's group.
+TILES_ARRAY = "tiles"
+#: Chunk index of tile key 0 on each axis (keys are shifted by it).
+KEY_OFFSET = KEY_LIMIT
+#: Chunks (tiles) per axis of the array.
+TILES_PER_AXIS = 2 * KEY_LIMIT
+#: zstd level of new arrays: 16^3 tiles of a fused scene shrink ~40x, ~25 us to encode.
+ZSTD_LEVEL = 1
+#: Largest accepted tile size (voxels per edge).
+MAX_TILE_SIZE = 256
+
+#: Temporary files of zarr's LocalStore: ``path.with_suffix(f".{uuid4().hex}.partial")``.
+_PARTIAL = re.compile(r"\.[0-9a-f]{32}\.partial\Z")
+_BYTES_CODEC = {"name": "bytes", "configuration": {"endian": "little"}}
+
+
+class TileArrayError(ValueError):
+    """A missing or unusable tile array, a corrupt chunk, or bad keys or tile data."""
+
+
+def _fsync_path(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+class ZarrTiles:
+    """The tile array ``tiles`` of one scene's Zarr v3 group on a local directory.
+
+    Build one with :meth:`create` or :meth:`open`. Keys are int64 arrays ``(n, 3)`` of tile
+    indices (``engine.tiling``); tile data is int64 ``(n, T, T, T)`` of packed voxels.
+    One process writes a given tile at a time (docs/storage.md, "One writer per tile").
+    """
+
+    def __init__(self, group_path: Path, array: zarr.Array, tile_size: int, zstd_level: int | None):
+        self.group_path = Path(group_path)
+        #: The directory of the array (``<group>/tiles``).
+        self.path = self.group_path / TILES_ARRAY
+        self.tile_size = int(tile_size)
+        #: The zarr array, for tools; tiles go through :meth:`read` and :meth:`write`.
+        self.array = array
+        self._store = LocalStore(self.group_path)
+        self._prototype = default_buffer_prototype()
+        self._zstd = None if zstd_level is None else Zstd(level=zstd_level)
+        self._nbytes = 8 * self.tile_size**3
+
+    # --- creating and opening --------------------------------------------------------------
+    @classmethod
+    def create(cls, group_path: Path, tile_size: int) -> ZarrTiles:
+        """Create the tile array in the Zarr v3 group at ``group_path`` (created if missing).
+
+        Its metadata files and folders are fsynced before returning.
+
+        Raises
+        ------
+        TileArrayError
+            For a bad tile size or when the group already has a tile array.
+        """
+        group_path = Path(group_path)
+        if isinstance(tile_size, bool) or not isinstance(tile_size, (int, np.integer)):
+            raise TileArrayError(f"tile_size: must be an integer, got {tile_size!r}")
+        T = int(tile_size)
+        if not 1 <= T <= MAX_TILE_SIZE:
+            raise TileArrayError(f"tile_size: must be in [1, {MAX_TILE_SIZE}] voxels, got {T}")
+        if (group_path / TILES_ARRAY / "zarr.json").exists():
+            raise TileArrayError(f"{group_path} already has a tile array")
+        new_dirs = [p for p in (group_path, *group_path.parents) if not p.exists()]
+        group = zarr.open_group(LocalStore(group_path), mode="a", zarr_format=3)
+        array = group.create_array(
+            TILES_ARRAY,
+            shape=(TILES_PER_AXIS * T,) * 3,
+            chunks=(T,) * 3,
+            dtype="int64",
+            fill_value=0,
+            compressors=zarr.codecs.ZstdCodec(level=ZSTD_LEVEL, checksum=False),
+            config={"write_empty_chunks": False},
+        )
+        for path in (
+            group_path / TILES_ARRAY / "zarr.json",
+            group_path / TILES_ARRAY,
+            group_path / "zarr.json",
+            group_path,
+            *(d.parent for d in new_dirs),
+        ):
+            _fsync_path(path)
+        return cls(group_path, array, T, ZSTD_LEVEL)
+
+    @classmethod
+    def open(cls, group_path: Path) -> ZarrTiles:
+        """Open the tile array of the group at ``group_path``.
+
+        Raises
+        ------
+        TileArrayError
+            When there is no tile array there, or its metadata is not the layout this module
+            writes (chunk = one cubic int64 tile, fill value 0, bytes + optional zstd codecs).
+        """
+        group_path = Path(group_path)
+        if not (group_path / TILES_ARRAY / "zarr.json").is_file():
+            raise TileArrayError(
+                f"no tile array at {group_path / TILES_ARRAY} (create it with ZarrTiles.create)"
+            )
+        array = zarr.open_array(LocalStore(group_path), path=TILES_ARRAY, mode="r+", zarr_format=3)
+        meta: dict[str, Any] = array.metadata.to_dict()
+        chunk_shape = tuple(meta["chunk_grid"]["configuration"]["chunk_shape"])
+        T = int(chunk_shape[0])
+        codecs = [dict(c) for c in meta["codecs"]]
+        zstd_level: int | None = None
+        if len(codecs) == 2 and codecs[1].get("name") == "zstd":
+            conf = codecs[1].get("configuration", {})
+            if conf.get("checksum") is False:
+                zstd_level = int(conf["level"])
+                codecs = codecs[:1]
+        problems = []
+        if meta["data_type"] != "int64":
+            problems.append(f"dtype {meta['data_type']} (expected int64)")
+        if len(chunk_shape) != 3 or len(set(chunk_shape)) != 1:
+            problems.append(f"chunk shape {chunk_shape} (expected a cube)")
+        elif tuple(meta["shape"]) != (TILES_PER_AXIS * T,) * 3:
+            problems.append(f"shape {tuple(meta['shape'])} (expected {TILES_PER_AXIS} tiles/axis)")
+        if meta["fill_value"] != 0:
+            problems.append(f"fill value {meta['fill_value']!r} (expected 0)")
+        if meta["chunk_key_encoding"] != {"name": "default", "configuration": {"separator": "/"}}:
+            problems.append(f"chunk key encoding {meta['chunk_key_encoding']}")
+        if codecs != [_BYTES_CODEC]:
+            problems.append(f"codecs {meta['codecs']} (expected bytes + zstd without checksum)")
+        if problems:
+            raise TileArrayError(
+                f"{group_path / TILES_ARRAY} is not a rangefuse tile array: {'; '.join(problems)}"
+            )
+        return cls(group_path, array, T, zstd_level)
+
+    # --- tiles -----------------------------------------------------------------------------
+    def _check_keys(self, keys: Any) -> np.ndarray:
+        arr = np.asarray(keys)
+        if arr.size == 0:
+            return np.zeros((0, 3), np.int64)
+        if arr.ndim != 2 or arr.shape[1] != 3:
+            raise TileArrayError(f"keys: must be an integer array (n, 3), got shape {arr.shape}")
+        if arr.dtype.kind not in "iu":
+            raise TileArrayError(f"keys: must be integers, got dtype {arr.dtype}")
+        arr = arr.astype(np.int64, copy=False)
+        if arr.min() <= -KEY_LIMIT or arr.max() >= KEY_LIMIT:
+            raise TileArrayError(f"keys: tile keys must lie in (-{KEY_LIMIT}, {KEY_LIMIT})")
+        return arr
+
+    def _chunk_names(self, keys: np.ndarray) -> Iterator[str]:
+        for i, j, k in (keys + KEY_OFFSET).tolist():
+            yield f"{TILES_ARRAY}/c/{i}/{j}/{k}"
+
+    def chunk_path(self, key: Any) -> Path:
+        """The file that holds tile ``key`` (int (3,)) when it is stored."""
+        keys = self._check_keys(np.asarray(key).reshape(1, 3))
+        return self.group_path / next(self._chunk_names(keys))
+
+    def read(self, keys: np.ndarray) -> np.ndarray:
+        """Voxel data of ``keys`` (int64 (n, 3)) as int64 (n, T, T, T); missing tiles are 0.
+
+        Raises
+        ------
+        TileArrayError
+            For a chunk file that does not decode to one tile (naming the key).
+        """
+        keys = self._check_keys(keys)
+        T = self.tile_size
+        out = np.zeros((len(keys), T, T, T), np.int64)
+        flat = out.reshape(len(keys), T**3)
+        for n, name in enumerate(self._chunk_names(keys)):
+            try:
+                with open(self.group_path / name, "rb") as fh:
+                    raw: bytes = fh.read()
+            except (FileNotFoundError, NotADirectoryError):
+                continue
+            try:
+                if self._zstd is not None:
+                    raw = self._zstd.decode(raw)
+                if len(raw) != self._nbytes:
+                    raise ValueError(f"{len(raw)} bytes, expected {self._nbytes}")
+                tile = np.frombuffer(raw, "<i8")
+            except Exception as exc:
+                raise TileArrayError(
+                    f"tile {keys[n].tolist()}: chunk {self.group_path / name} is corrupt ({exc})"
+                ) from exc
+            flat[n] = tile
+        return out
+
+    def write(self, keys: np.ndarray, data: np.ndarray) -> None:
+        """Store whole tiles: ``data`` int64 (n, T, T, T) for ``keys`` int64 (n, 3).
+
+        A tile of zeros (all unknown) is not stored: its chunk is deleted. Each chunk is
+        replaced atomically (temporary file and rename) but not fsynced; see :meth:`fsync`.
+        """
+        keys = self._check_keys(keys)
+        T = self.tile_size
+        if not isinstance(data, np.ndarray) or data.dtype != np.int64:
+            got = data.dtype if isinstance(data, np.ndarray) else type(data).__name__
+            raise TileArrayError(f"data: tiles must be an int64 array, got {got}")
+        if data.shape != (len(keys), T, T, T):
+            raise TileArrayError(
+                f"data: expected shape {(len(keys), T, T, T)} for {len(keys)} keys, "
+                f"got {data.shape}"
+            )
+        if len(keys) > 1 and len(unique_keys(keys)) != len(keys):
+            raise TileArrayError("keys: the same tile is written twice in one call")
+        data = data.astype("<i8", copy=False)
+        for tile, name in zip(data, self._chunk_names(keys), strict=True):
+            if not tile.any():
+                self._store.delete_sync(name)
+                continue
+            raw = np.ascontiguousarray(tile)
+            payload = self._zstd.encode(raw) if self._zstd is not None else raw.tobytes()
+            self._store.set_sync(name, self._prototype.buffer.from_bytes(payload))
+
+    def delete(self, keys: np.ndarray) -> None:
+        """Remove the chunks of ``keys``; missing ones are ignored (not fsynced)."""
+        keys = self._check_keys(keys)
+        for name in self._chunk_names(keys):
+            with contextlib.suppress(FileNotFoundError, NotADirectoryError):
+                os.unlink(self.group_path / name)
+
+    # --- durability and recovery -----------------------------------------------------------
+    def fsync(self, keys: np.ndarray) -> None:
+        """Make the state of ``keys``' chunks durable.
+
+        fsyncs each chunk file that exists and every existing folder from its folder up to
+        the array's, so that written, replaced and deleted chunks all survive a power loss.
+        """
+        keys = self._check_keys(keys)
+        folders: set[str] = set()
+        for name in self._chunk_names(keys):
+            path = self.group_path / name
+            try:
+                fd = os.open(path, os.O_RDONLY)
+            except (FileNotFoundError, NotADirectoryError):
+                pass
+            else:
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+            parts = name.split("/")
+            for depth in range(1, len(parts)):
+                folders.add("/".join(parts[:depth]))
+        for folder in sorted(folders, key=len, reverse=True):  # deepest first
+            with contextlib.suppress(FileNotFoundError, NotADirectoryError):
+                _fsync_path(self.group_path / folder)
+
+    def remove_partials(self) -> int:
+        """Delete the ``<chunk>.<32 hex>.partial`` files that killed writes left behind.
+
+        Only while no process writes the array (at open, under the store lock): a live
+        writer's temporary file would be deleted under it. Returns how many were removed.
+        """
+        removed = 0
+        for folder, _, files in os.walk(self.path):
+            for name in files:
+                if _PARTIAL.search(name):
+                    try:
+                        os.unlink(os.path.join(folder, name))
+                    except FileNotFoundError:
+                        continue
+                    removed += 1
+        return removed
+
+    def stored_keys(self) -> np.ndarray:
+        """Keys of every chunk file present, by walking ``tiles/c`` (not through zarr).
+
+        Returns sorted unique int64 (n, 3). Files that are not chunks of a valid key (such as
+        ``.partial`` orphans) are skipped.
+        """
+        found: list[tuple[int, int, int]] = []
+        for i, dir_i in _int_entries(self.path / "c", dirs=True):
+            for j, dir_j in _int_entries(dir_i, dirs=True):
+                for k, _ in _int_entries(dir_j, dirs=False):
+                    found.append((i, j, k))
+        if not found:
+            return np.zeros((0, 3), np.int64)
+        return unique_keys(np.array(found, np.int64) - KEY_OFFSET)
+
+
+def _int_entries(folder: Path, dirs: bool) -> Iterator[tuple[int, Path]]:
+    """``(index, path)`` of the entries of ``folder`` named by a chunk index in range."""
+    try:
+        entries = list(os.scandir(folder))
+    except (FileNotFoundError, NotADirectoryError):
+        return
+    for entry in entries:
+        name = entry.name
+        if not (name.isascii() and name.isdigit()):
+            continue
+        index = int(name)
+        if str(index) != name:  # zarr writes no leading zeros
+            continue
+        if index >= TILES_PER_AXIS or index == 0:  # key -2**20 is outside (-KEY_LIMIT, ...)
+            continue
+        is_dir = entry.is_dir(follow_symlinks=False)
+        if is_dir if dirs else entry.is_file(follow_symlinks=False):
+            yield index, Path(entry.path)

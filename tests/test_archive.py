@@ -1,0 +1,164 @@
+"""The scan archive (storage.archive) on real Zarr directories."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+from zarr.storage import LocalStore
+
+from engine import NoiseModel, Scan
+from storage import archive as archive_module
+from storage.archive import ArchiveError, ScanArchive, check_scan_id, scan_checksum
+from tests import scenes
+
+
+def _scan(name: str, seed: int = 0, noise: NoiseModel | None = None) -> Scan:
+    sensor = scenes.sensor(name)
+    rng = np.random.default_rng(seed)
+    ranges = rng.uniform(0.1, 3.0, sensor.shape).astype(np.float32)
+    flat = ranges.reshape(-1).view(np.uint32)
+    flat[0] = 0x7FC00000  # NaN
+    flat[1] = 0xFFC00001  # a negative NaN with a payload: kept bit for bit too
+    flat[2] = 0x7F800000  # +inf
+    ranges[-1, :] = np.inf  # a row of no return
+    pose = scenes.poses(name, 3)[seed % 3]
+    return Scan(ranges, pose, sensor, noise)
+
+
+@pytest.mark.parametrize("name", sorted(scenes.SENSORS))
+def test_round_trip_every_sensor(tmp_path: Path, name: str) -> None:
+    archive = ScanArchive(tmp_path / "scene.zarr")
+    noise = NoiseModel(0.01, 0.002, falloff_m=0.05) if name.startswith("sph") else None
+    scan = _scan(name, noise=noise)
+    checksum = archive.put(name, scan, name=f"{name}.npz")
+    assert checksum == scan_checksum(scan) == archive.checksum(name)
+    assert checksum.startswith("sha256:") and len(checksum) == 7 + 64
+    back = archive.get(name)
+    assert back.range_m.dtype == np.float32
+    assert back.range_m.tobytes() == scan.range_m.tobytes()
+    assert back.T_W_S.tobytes() == scan.T_W_S.tobytes()
+    assert back.sensor == scan.sensor
+    assert back.noise == scan.noise
+    assert archive.name(name) == f"{name}.npz"
+    # a plain zarr group any tool can read
+    group = zarr.open_group(LocalStore(tmp_path / "scene.zarr"), mode="r")
+    entry = group["scans"][name]
+    assert isinstance(entry, zarr.Group)
+    assert entry.attrs["sensor"] == scan.sensor.to_dict()
+    assert entry.attrs["checksum"] == checksum
+    assert np.array_equal(entry["range"][...], scan.range_m, equal_nan=True)
+
+
+def test_ids_delete_and_missing(tmp_path: Path) -> None:
+    archive = ScanArchive(tmp_path / "g")
+    assert archive.ids() == []
+    for scan_id in ("b-2", "a.1", "C_3"):
+        archive.put(scan_id, _scan("orthographic"))
+    assert archive.ids() == ["C_3", "a.1", "b-2"]
+    assert "a.1" in archive and "zz" not in archive and "../x" not in archive
+    archive.delete("a.1")
+    archive.delete("a.1")  # already gone: nothing to do
+    assert archive.ids() == ["C_3", "b-2"]
+    assert not (archive.path / "a.1").exists()
+    assert not [p for p in archive.path.iterdir() if p.name.startswith(".")]
+    with pytest.raises(ArchiveError, match="scan 'a.1' is not in the archive"):
+        archive.get("a.1")
+    with pytest.raises(ArchiveError, match="scan 'a.1' is not in the archive"):
+        archive.checksum("a.1")
+
+
+def test_duplicate_id_refused(tmp_path: Path) -> None:
+    archive = ScanArchive(tmp_path / "g")
+    first = _scan("pinhole_z", seed=1)
+    archive.put("s1", first)
+    with pytest.raises(ArchiveError, match="scan 's1' is already in the archive"):
+        archive.put("s1", _scan("pinhole_z", seed=2))
+    assert archive.get("s1").range_m.tobytes() == first.range_m.tobytes()
+    assert archive.ids() == ["s1"]
+    assert archive.remove_temporaries() == 0
+
+
+@pytest.mark.parametrize(
+    "bad",
+    ["", ".hidden", "..", ".", "a/b", "../up", "a b", "x" * 129, "é", "a\n", "zarr.json", "a\\b"],
+)
+def test_bad_ids_refused(tmp_path: Path, bad: str) -> None:
+    archive = ScanArchive(tmp_path / "g")
+    with pytest.raises(ArchiveError, match="is not allowed: use 1 to 128 letters"):
+        archive.put(bad, _scan("orthographic"))
+    with pytest.raises(ArchiveError, match="is not allowed"):
+        archive.get(bad)
+    with pytest.raises(ArchiveError, match="is not allowed"):
+        archive.delete(bad)
+    assert archive.ids() == []
+
+
+def test_good_ids_accepted() -> None:
+    for good in ("a", "-x", "_", "scan.001", "A-b_c.d", "x" * 128, "0"):
+        assert check_scan_id(good) == good
+    with pytest.raises(ArchiveError, match="must be a string"):
+        check_scan_id(3)  # type: ignore[arg-type]
+
+
+def test_corrupt_range_chunk_detected(tmp_path: Path) -> None:
+    archive = ScanArchive(tmp_path / "g")
+    archive.put("s", _scan("pinhole_ray"))
+    chunk = archive.path / "s" / "range" / "c" / "0" / "0"
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    chunk.write_bytes(bytes(data))
+    with pytest.raises(ArchiveError, match="scan 's'"):
+        archive.get("s")
+
+
+def test_tampered_pose_fails_the_checksum(tmp_path: Path) -> None:
+    archive = ScanArchive(tmp_path / "g")
+    archive.put("s", _scan("spherical"))
+    meta_path = archive.path / "s" / "zarr.json"
+    meta = json.loads(meta_path.read_text())
+    meta["attributes"]["pose"][0][3] += 1e-9
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(ArchiveError, match="scan 's': checksum mismatch"):
+        archive.get("s")
+
+
+def test_missing_parts_detected(tmp_path: Path) -> None:
+    archive = ScanArchive(tmp_path / "g")
+    archive.put("s", _scan("linescan"))
+    archive.put("t", _scan("linescan"))
+    (archive.path / "s" / "range" / "c" / "0" / "0").unlink()
+    with pytest.raises(ArchiveError, match="scan 's': .*missing"):
+        archive.get("s")
+    (archive.path / "t" / "zarr.json").unlink()
+    with pytest.raises(ArchiveError, match="scan 't': archive entry is incomplete"):
+        archive.get("t")
+
+
+def test_temporaries_removed_and_ignored(tmp_path: Path) -> None:
+    archive = ScanArchive(tmp_path / "g")
+    archive.put("kept", _scan("orthographic"))
+    leftover = archive.path / ".tmp-lost-0123456789abcdef"
+    (leftover / "range").mkdir(parents=True)
+    (leftover / "zarr.json").write_text("{}")
+    assert archive.ids() == ["kept"]
+    assert archive.remove_temporaries() == 1
+    assert not leftover.exists()
+    assert archive.ids() == ["kept"]
+    assert archive.remove_temporaries() == 0
+
+
+def test_failed_rename_leaves_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    archive = ScanArchive(tmp_path / "g")
+
+    def refuse(src: object, dst: object) -> None:
+        raise OSError("disk on fire")
+
+    monkeypatch.setattr(archive_module.os, "rename", refuse)
+    with pytest.raises(OSError, match="disk on fire"):
+        archive.put("s", _scan("orthographic"))
+    assert archive.ids() == []
+    assert [p.name for p in archive.path.iterdir()] == ["zarr.json"]
