@@ -8,16 +8,17 @@ resumes; ``add``, ``remove``, ``extract`` and ``info`` work on an existing store
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 from engine import FusionParams, GridSpec, Scan
 from engine.meshing import Mesh
 from storage import open_dataset
 from storage.dataset import read_scan_file
-from storage.scene import CACHE_MB, Scene, open_store
+from storage.scene import CACHE_MB, InProcess, Runner, Scene, open_store
 
 from ._cliutil import (
     CommandError,
@@ -25,11 +26,13 @@ from ._cliutil import (
     check_outputs,
     finite_float,
     positive_float,
+    positive_int,
     write_outputs,
 )
 from ._progress import ProgressBar
+from .runners import ProcessRunner
 
-__all__ = ["add_store_commands", "fuse_into_store"]
+__all__ = ["add_store_commands", "fuse_into_store", "workers_option"]
 
 
 def _announce_recovery(scene: Scene) -> None:
@@ -87,18 +90,31 @@ def fuse_into_store(
 ) -> int:
     """``rangefuse fuse DATASET --store DIR``."""
     dataset = open_dataset(dataset_path)
-    with open_store(args.store, grid, params, cache_mb=args.cache_mb) as scene:
+    with (
+        _runner(args) as runner,
+        open_store(args.store, grid, params, cache_mb=args.cache_mb, runner=runner) as scene,
+    ):
         _announce_recovery(scene)
         _store_and_integrate(scene, dataset.scans(), args.quiet, "fuse")
         _write_scene_outputs(args, scene)
     return 0
 
 
-def _open_existing(args: argparse.Namespace) -> Scene:
+@contextlib.contextmanager
+def _runner(args: argparse.Namespace) -> Iterator[Runner]:
+    workers = getattr(args, "workers", 1)
+    if workers <= 1:
+        yield InProcess()
+        return
+    with ProcessRunner(workers) as runner:
+        yield runner
+
+
+def _open_existing(args: argparse.Namespace, runner: Runner | None = None) -> Scene:
     path = Path(args.store)
     if not path.exists():
         raise CommandError(f"{path}: no such store")
-    scene = open_store(path, cache_mb=getattr(args, "cache_mb", CACHE_MB))
+    scene = open_store(path, cache_mb=getattr(args, "cache_mb", CACHE_MB), runner=runner)
     _announce_recovery(scene)
     return scene
 
@@ -125,7 +141,7 @@ def _cmd_add(args: argparse.Namespace) -> int:
             except (OSError, ValueError) as exc:
                 raise CommandError(f"{sensor_path}: not a usable sensor.json ({exc})") from None
         scans.append((path.stem, read_scan_file(path, default)))  # all read before storing
-    with _open_existing(args) as scene:
+    with _runner(args) as runner, _open_existing(args, runner) as scene:
         duplicate = [s for s, _ in scans if s in scene]
         if duplicate:
             raise CommandError(f"the store already holds a scan named {duplicate[0]!r}")
@@ -186,6 +202,7 @@ def add_store_commands(sub: argparse._SubParsersAction) -> None:
         help="sensor of scans that hold none (default: sensor.json beside or above them)",
     )
     _cache_option(add)
+    workers_option(add)
     add.add_argument("--quiet", action="store_true", help="no progress bar")
     add.set_defaults(func=_cmd_add)
 
@@ -213,6 +230,17 @@ def add_store_commands(sub: argparse._SubParsersAction) -> None:
     info.add_argument("store", type=Path, metavar="DIR")
     info.add_argument("--json", action="store_true", help="print JSON")
     info.set_defaults(func=_cmd_info)
+
+
+def workers_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--workers",
+        type=positive_int,
+        default=1,
+        metavar="N",
+        help="fuse tiles on N spawned worker processes, numba threads divided among them "
+        "(default 1: in this process; same bits either way)",
+    )
 
 
 def _cache_option(parser: argparse.ArgumentParser) -> None:

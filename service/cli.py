@@ -45,7 +45,7 @@ from ._cliutil import (
     write_outputs,
 )
 from ._progress import ProgressBar
-from ._store_cli import add_store_commands, fuse_into_store
+from ._store_cli import add_store_commands, fuse_into_store, workers_option
 
 __all__ = ["main"]
 
@@ -295,6 +295,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="MB",
         help=f"with --store: memory budget of the tile cache (default {CACHE_MB})",
     )
+    workers_option(fuse)
     fuse.add_argument("--quiet", action="store_true", help="no progress bar")
     fuse.set_defaults(func=_cmd_fuse)
     add_store_commands(sub)

@@ -19,7 +19,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -44,11 +44,16 @@ from .zarr_tiles import ZarrTiles
 
 __all__ = [
     "STORE_VERSION",
+    "InProcess",
+    "Runner",
     "Scene",
     "SceneConflictError",
     "StoreError",
     "StoreLockedError",
     "StoreVersionError",
+    "TileUnit",
+    "UnitResult",
+    "integrate_unit",
     "open_store",
 ]
 
@@ -152,6 +157,7 @@ def open_store(
     *,
     scene_id: str = DEFAULT_SCENE,
     cache_mb: float = CACHE_MB,
+    runner: Runner | None = None,
 ) -> Scene:
     """Open (and recover) the scene of a store, creating both when ``grid`` and ``params``
     are given and the store does not hold the scene yet.
@@ -180,7 +186,7 @@ def open_store(
             _check_same(path, "fusion parameters", stored_params.to_dict(), params)
             grid, params = stored_grid, stored_params
         assert grid is not None and params is not None
-        return Scene(store, scene_id, grid, params, cache_mb)
+        return Scene(store, scene_id, grid, params, cache_mb, runner)
     except BaseException:
         store.close()
         raise
@@ -292,6 +298,104 @@ class TileCache:
 
 
 # --------------------------------------------------------------------------------------------
+# units of work and runners
+
+
+@dataclass(frozen=True)
+class TileUnit:
+    """Integrate scans into some tiles of a scene: plain data, picklable (DESIGN.md
+    "Scale-out": the same unit runs in-process, in a worker process or on a Dask worker).
+
+    ``scans`` lists ``(scan_id, rows, free)``: the rows of ``keys`` the archived scan
+    updates and whether it sees each as free space throughout; ``new`` marks tiles that
+    do not exist on disk yet.
+    """
+
+    group_path: str
+    grid: dict[str, Any]
+    params: dict[str, Any]
+    keys: np.ndarray
+    new: np.ndarray
+    scans: list[tuple[str, np.ndarray, np.ndarray]]
+    cache_mb: float
+
+
+@dataclass(frozen=True)
+class UnitResult:
+    informed: dict[str, np.ndarray]  # rows of the unit's keys each scan informs
+    voxel_updates: int
+
+
+def integrate_unit(unit: TileUnit) -> UnitResult:
+    """Add the unit's scans to its tiles and write them back (fsynced).
+
+    Tiles are the outer loop: each tile is read once and written once, whatever the number
+    of scans (they are loaded from the archive first: a group of scans, a few MB). The
+    caller holds the store's writer lock and has journaled the tiles; no other unit has any
+    of them.
+    """
+    grid = GridSpec.from_dict(unit.grid)
+    params = FusionParams.from_dict(unit.params)
+    group = Path(unit.group_path)
+    tiles = ZarrTiles.open(group)
+    archive = ScanArchive(group)
+    cache = TileCache(tiles, grid.tile_size_vox, int(unit.cache_mb * 2**20))
+    scans = [prepare_scan(archive.get(scan_id), params) for scan_id, _, _ in unit.scans]
+    n = len(unit.keys)
+    # per scan and tile: -1 out of view, 0 partial, 1 free throughout
+    status = np.full((len(scans), n), -1, np.int8)
+    for k, (_, rows, free) in enumerate(unit.scans):
+        status[k, rows] = free.astype(np.int8)
+    hit = np.zeros((len(scans), n), np.bool_)
+    updates = 0
+    for start in range(0, n, cache.batch):
+        part = np.arange(start, min(n, start + cache.batch))
+        data = cache.fetch(unit.keys[part], unit.new[part])
+        for k, prepared in enumerate(scans):
+            seen = np.flatnonzero(status[k, part] >= 0)
+            if len(seen) == 0:
+                continue
+            count = integrate_seen(
+                prepared, grid, unit.keys[part], data, seen, status[k, part[seen]] == 1, 1
+            )
+            hit[k, part] = count > 0
+            updates += int(count.sum())
+        cache.store(unit.keys[part], data)
+    written = cache.flush()
+    if len(written):
+        tiles.fsync(unpack_keys(written))
+    informed = {scan_id: np.flatnonzero(hit[k]) for k, (scan_id, _, _) in enumerate(unit.scans)}
+    return UnitResult(informed=informed, voxel_updates=updates)
+
+
+class Runner(Protocol):
+    """Runs units of work: in this process, on worker processes, on a cluster."""
+
+    workers: int
+
+    def map(
+        self, fn: Callable[[TileUnit], UnitResult], units: list[TileUnit]
+    ) -> list[UnitResult]: ...
+
+
+class InProcess:
+    """The default runner: one unit after the other, here."""
+
+    workers = 1
+
+    def map(self, fn: Callable[[TileUnit], UnitResult], units: list[TileUnit]) -> list[UnitResult]:
+        return [fn(u) for u in units]
+
+
+def _partition(keys: np.ndarray, n: int) -> np.ndarray:
+    """Worker of each tile: by tile key, so a tile always goes to the same worker."""
+    if n == 1:
+        return np.zeros(len(keys), np.int64)
+    h = (keys[:, 0] * 73856093) ^ (keys[:, 1] * 19349663) ^ (keys[:, 2] * 83492791)
+    return np.mod(h, n)
+
+
+# --------------------------------------------------------------------------------------------
 # the scene
 
 
@@ -385,7 +489,13 @@ class Scene:
     """
 
     def __init__(
-        self, store: _Store, scene_id: str, grid: GridSpec, params: FusionParams, cache_mb: float
+        self,
+        store: _Store,
+        scene_id: str,
+        grid: GridSpec,
+        params: FusionParams,
+        cache_mb: float,
+        runner: Runner | None = None,
     ) -> None:
         self._store = store
         self.path = store.path
@@ -399,7 +509,9 @@ class Scene:
         else:
             self.tiles = ZarrTiles.create(self.group_path, grid.tile_size_vox)
         self.archive = ScanArchive(self.group_path)
+        self.cache_mb = cache_mb
         self.cache = TileCache(self.tiles, grid.tile_size_vox, int(cache_mb * 2**20))
+        self.runner: Runner = runner if runner is not None else InProcess()
         self._prepared: OrderedDict[str, PreparedScan] = OrderedDict()
         self.recovered = self._recover()
 
@@ -511,15 +623,40 @@ class Scene:
         )
         with self.catalog.transaction():
             self.catalog.journal_add(self.scene_id, packed[written])
-        informed_tiles: dict[str, np.ndarray] = {}
-        for scan_id, (rows, free) in plans.items():
-            hits, updates = self._apply(scan_id, keys, rows, free, is_new, sign=1)
-            informed_tiles[scan_id] = packed[hits]
-            report.voxel_updates += updates
-        fresh = np.flatnonzero(is_new)  # created tiles nobody informed: unknown, no chunk
-        self.cache.store(keys[fresh], self.cache.fetch(keys[fresh], is_new[fresh]))
+        # the work: tiles partitioned among the runner's workers, each a plain function
+        # of (scene location, tiles, scans); every tile has exactly one writer
+        self.cache.flush()
+        self.cache.clear()
+        n_parts = max(1, min(self.runner.workers, len(written)))
+        part_of = _partition(keys[written], n_parts)
+        units = []
+        for p in range(n_parts):
+            mine = written[part_of == p]
+            local = np.full(len(keys), -1, np.int64)
+            local[mine] = np.arange(len(mine))
+            scans = []
+            for scan_id, (rows, free) in plans.items():
+                sel = local[rows] >= 0
+                if sel.any():
+                    scans.append((scan_id, local[rows[sel]], free[sel]))
+            units.append(
+                TileUnit(
+                    group_path=str(self.group_path),
+                    grid=self.grid.to_dict(),
+                    params=self.params.to_dict(),
+                    keys=keys[mine],
+                    new=is_new[mine],
+                    scans=scans,
+                    cache_mb=self.cache_mb / n_parts,
+                )
+            )
+        informed_tiles: dict[str, list[np.ndarray]] = {}
+        for unit, result in zip(units, self.runner.map(integrate_unit, units), strict=True):
+            for scan_id, local_rows in result.informed.items():
+                informed_tiles.setdefault(scan_id, []).append(pack_keys(unit.keys[local_rows]))
+            report.voxel_updates += result.voxel_updates
         self._checkpoint(
-            informed=informed_tiles,
+            informed={s: np.concatenate(v) for s, v in informed_tiles.items()},
             owned={s: pack_keys(t) for s, t in touched.items()},
             fused=new_ids,
             changed=packed[written],

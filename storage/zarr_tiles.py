@@ -22,6 +22,7 @@ chunk of a huge sparse array); :meth:`ZarrTiles.stored_keys` walks the directory
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
 import re
 from collections.abc import Iterator
@@ -57,6 +58,24 @@ _BYTES_CODEC = {"name": "bytes", "configuration": {"endian": "little"}}
 
 class TileArrayError(ValueError):
     """A missing or unusable tile array, a corrupt chunk, or bad keys or tile data."""
+
+
+#: From this many chunks on, :meth:`ZarrTiles.fsync` syncs the whole file system instead.
+_SYNCFS_FROM = 256
+
+
+def _syncfs(path: Path) -> bool:
+    """``syncfs(2)`` of the file system holding ``path``; False where unavailable."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        syncfs = libc.syncfs
+    except (OSError, AttributeError):
+        return False
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        return int(syncfs(fd)) == 0
+    finally:
+        os.close(fd)
 
 
 def _fsync_path(path: Path) -> None:
@@ -267,8 +286,13 @@ class ZarrTiles:
 
         fsyncs each chunk file that exists and every existing folder from its folder up to
         the array's, so that written, replaced and deleted chunks all survive a power loss.
+        For many keys, one ``syncfs`` of the file system is much cheaper than a ``fsync`` per
+        file and folder (measured: 102,040 fsyncs took 12 s for 85k tiles) and promises
+        the same.
         """
         keys = self._check_keys(keys)
+        if len(keys) >= _SYNCFS_FROM and _syncfs(self.path):
+            return
         folders: set[str] = set()
         for name in self._chunk_names(keys):
             path = self.group_path / name

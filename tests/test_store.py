@@ -66,13 +66,34 @@ def test_store_equals_memory_and_survives_reopening(tmp_path, room, mode):
         _fill(scene, room.scans)
         np.testing.assert_array_equal(scene.tile_keys(), expected.tile_keys())
         _same_dense(scene.to_dense(), expected.to_dense())
-        assert scene.cache.writes > 0
     with open_store(tmp_path / "s") as scene:
         _same_dense(scene.to_dense(), expected.to_dense())
         assert scene.recovered["rebuilt_tiles"] == 0
         info = scene.info()
         assert info["scans"] == 6 and info["scan_states"] == {"fused": 6}
         assert info["tiles"] == len(expected.tile_keys()) and info["bytes_on_disk"] > 0
+
+
+def test_tile_cache_evicts_dirty_tiles_and_reads_them_back(tmp_path):
+    from storage.scene import TileCache
+    from storage.zarr_tiles import ZarrTiles
+
+    tiles = ZarrTiles.create(tmp_path / "g.zarr", 4)
+    cache = TileCache(tiles, 4, budget_bytes=16 * 4**3 * 8)  # 16 tiles
+    keys = np.array([[k, -k, 2 * k] for k in range(40)], np.int64)
+    new = np.ones(len(keys), bool)
+    for start in range(0, 40, 8):
+        part = slice(start, start + 8)
+        data = cache.fetch(keys[part], new[part])
+        assert not data.any()
+        data += np.arange(start, start + 8)[:, None, None, None] + 1
+        cache.store(keys[part], data)
+    assert cache.writes > 0  # evicted while over budget
+    again = cache.fetch(keys, new)  # evicted new tiles come back from disk
+    np.testing.assert_array_equal(again[:, 0, 0, 0], np.arange(40) + 1)
+    written = cache.flush()
+    assert len(written) == 40
+    np.testing.assert_array_equal(tiles.read(keys)[:, 1, 2, 3], np.arange(40) + 1)
 
 
 def test_adding_later_equals_all_at_once(tmp_path, room):
@@ -86,6 +107,19 @@ def test_adding_later_equals_all_at_once(tmp_path, room):
         for item in rest:  # one scan per group
             scene.store_scan(*item)
             scene.integrate_pending(group_scans=1)
+        _same_dense(scene.to_dense(), expected)
+
+
+def test_worker_processes_give_the_same_bits(tmp_path, room):
+    from service.runners import ProcessRunner
+
+    grid = _grid()
+    expected = _memory(room.scans, grid).to_dense()
+    with (
+        ProcessRunner(2) as runner,
+        open_store(tmp_path / "s", grid, PARAMS, cache_mb=1, runner=runner) as scene,
+    ):
+        _fill(scene, room.scans)
         _same_dense(scene.to_dense(), expected)
 
 
