@@ -51,12 +51,14 @@ $(BENCH_STAMP): $(STAMP)
 bench: $(BENCH_STAMP)
 	$(BIN)/python benchmarks/fusion.py --quick
 	$(BIN)/python benchmarks/meshing.py --quick
+	$(BIN)/python benchmarks/out_of_core.py --quick
 	$(BIN)/python benchmarks/vs_open3d.py --quick
 
 # The sizes the issues report.
 bench-full: $(BENCH_STAMP)
 	$(BIN)/python benchmarks/fusion.py
 	$(BIN)/python benchmarks/meshing.py
+	$(BIN)/python benchmarks/out_of_core.py
 	$(BIN)/python benchmarks/vs_open3d.py
 
 clean:

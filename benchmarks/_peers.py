@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -13,6 +14,13 @@ from engine import PinholeSensor, Scan
 #: Open3D's truncation distance in voxels and its depth cut-off (metres).
 TRUNC_VOXELS = 4.0
 DEPTH_MAX_M = 8.0
+#: Hash-map blocks Open3D allocates up front: enough for the room at 1 cm.
+BLOCKS_AT_1CM = 100_000
+
+
+def open3d_available() -> bool:
+    """Whether open3d can be imported (without importing it: numba warns after it)."""
+    return importlib.util.find_spec("open3d") is not None
 
 
 def import_open3d() -> Any:
@@ -20,65 +28,85 @@ def import_open3d() -> Any:
         import open3d as o3d
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise SystemExit(
-            f"open3d is not installed ({exc}); run `make bench` or "
-            "`pip install -e '.[bench]'` (Debian needs libusb-1.0-0)"
+            f"open3d is not importable ({exc}); run `make bench` or "
+            "`pip install -e '.[bench]'` (the wheel also needs libusb-1.0-0 from apt)"
         ) from None
     return o3d
 
 
-class Open3DTSDF:
-    """Open3D's ``VoxelBlockGrid`` TSDF integration of z-depth pinhole scans on the CPU."""
-
-    def __init__(self, voxel_size_m: float, block_resolution: int = 8, blocks: int = 200_000):
-        o3d = import_open3d()
-        self._o3d = o3d
-        self._o3c = o3d.core
-        self.voxel_size_m = voxel_size_m
-        self.vbg = o3d.t.geometry.VoxelBlockGrid(
-            attr_names=("tsdf", "weight"),
-            attr_dtypes=(self._o3c.float32, self._o3c.float32),
-            attr_channels=((1), (1)),
-            voxel_size=voxel_size_m,
-            block_resolution=block_resolution,
-            block_count=blocks,
-            device=self._o3c.Device("CPU:0"),
-        )
-
-    def _frame(self, scan: Scan) -> tuple[Any, Any, Any]:
+def depth_images(scans: Sequence[tuple[str, Scan]]) -> list[np.ndarray]:
+    """z-depth maps in metres, float32, 0 where a pixel has no measurement (Open3D's invalid)."""
+    out = []
+    for _, scan in scans:
         sensor = scan.sensor
-        if not isinstance(sensor, PinholeSensor) or sensor.range_convention != "z":
-            raise ValueError("Open3D's TSDF takes z-depth pinhole scans only")
-        depth = np.where(np.isfinite(scan.range_m), scan.range_m, 0.0).astype(np.float32)
-        K = np.array(
-            [[sensor.fx, 0.0, sensor.cx], [0.0, sensor.fy, sensor.cy], [0.0, 0.0, 1.0]],
-            np.float64,
-        )
-        extrinsic = np.linalg.inv(scan.T_W_S).astype(np.float64)
-        o3c = self._o3c
-        return (
-            self._o3d.t.geometry.Image(o3c.Tensor(depth)),
-            o3c.Tensor(K),
-            o3c.Tensor(extrinsic),
-        )
+        if not isinstance(sensor, PinholeSensor):
+            raise SystemExit(f"Open3D's TSDF needs a pinhole sensor, got {sensor.model}")
+        depth = scan.range_m.astype(np.float32)
+        if sensor.range_convention == "ray":  # |p| -> p_z along each pixel's ray
+            v, u = np.mgrid[0 : sensor.height, 0 : sensor.width]
+            x = (u - sensor.cx) / sensor.fx
+            y = (v - sensor.cy) / sensor.fy
+            depth = (depth / np.sqrt(x * x + y * y + 1.0)).astype(np.float32)
+        depth[~np.isfinite(depth)] = 0.0
+        out.append(np.ascontiguousarray(depth))
+    return out
 
-    def integrate(self, scans: Sequence[Scan]) -> float:
-        """Integrate the scans; returns the seconds spent (image upload included)."""
-        t0 = time.perf_counter()
-        for scan in scans:
-            depth, K, extrinsic = self._frame(scan)
-            coords = self.vbg.compute_unique_block_coordinates(
-                depth, K, extrinsic, 1.0, DEPTH_MAX_M, TRUNC_VOXELS
-            )
-            self.vbg.integrate(coords, depth, K, extrinsic, 1.0, DEPTH_MAX_M, TRUNC_VOXELS)
-        return time.perf_counter() - t0
+
+class Open3DTSDF:
+    """Open3D's ``VoxelBlockGrid`` (tsdf + weight, float32, 8^3 blocks) on the CPU."""
 
     #: Open3D meshes voxels of at least this weight (its default is 3; rangefuse meshes every
     #: informed voxel, so the comparison uses 1).
     weight_threshold = 1.0
 
+    def __init__(self, voxel_size_m: float, sensor: PinholeSensor) -> None:
+        o3d = import_open3d()
+        self._o3d = o3d
+        o3c = o3d.core
+        self._o3c = o3c
+        self.intrinsic = o3c.Tensor(
+            np.array([[sensor.fx, 0.0, sensor.cx], [0.0, sensor.fy, sensor.cy], [0.0, 0.0, 1.0]]),
+            o3c.float64,
+        )
+        self.vbg = o3d.t.geometry.VoxelBlockGrid(
+            attr_names=("tsdf", "weight"),
+            attr_dtypes=(o3c.float32, o3c.float32),
+            attr_channels=((1), (1)),
+            voxel_size=voxel_size_m,
+            block_resolution=8,
+            block_count=max(10_000, int(BLOCKS_AT_1CM * (0.01 / voxel_size_m) ** 2)),
+            device=o3c.Device("CPU:0"),
+        )
+
+    def extrinsics(self, poses: Sequence[np.ndarray]) -> list[Any]:
+        return [self._o3c.Tensor(np.linalg.inv(T_W_S), self._o3c.float64) for T_W_S in poses]
+
+    def integrate(self, depth_np: np.ndarray, extrinsic: Any) -> None:
+        depth = self._o3d.t.geometry.Image(self._o3c.Tensor(depth_np))
+        kwargs: dict[str, Any] = {
+            "depth_scale": 1.0,
+            "depth_max": DEPTH_MAX_M,
+            "trunc_voxel_multiplier": TRUNC_VOXELS,
+        }
+        frustum = self.vbg.compute_unique_block_coordinates(
+            depth, self.intrinsic, extrinsic, **kwargs
+        )
+        self.vbg.integrate(frustum, depth, self.intrinsic, extrinsic, **kwargs)
+
+    def integrate_all(self, depths: Sequence[np.ndarray], extrinsics: Sequence[Any]) -> float:
+        """Integrate prepared frames; returns the seconds spent."""
+        t0 = time.perf_counter()
+        for depth_np, extrinsic in zip(depths, extrinsics, strict=True):
+            self.integrate(depth_np, extrinsic)
+        return time.perf_counter() - t0
+
+    @property
+    def blocks(self) -> int:
+        return int(self.vbg.hashmap().size())
+
     def extract_triangle_mesh(self) -> tuple[int, float]:
         """Marching cubes on the TSDF: (triangles, seconds)."""
         t0 = time.perf_counter()
-        mesh = self.vbg.extract_triangle_mesh()
+        mesh = self.vbg.extract_triangle_mesh(weight_threshold=self.weight_threshold)
         seconds = time.perf_counter() - t0
         return int(mesh.triangle.indices.shape[0]), seconds

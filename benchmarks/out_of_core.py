@@ -7,7 +7,7 @@ worker processes), tiles, bytes on disk, and how large a dense float32 grid of t
 bounding box would be. Each run is a fresh child process, so peak RSS is its own. The
 largest length runs again with 2 worker processes for the speed-up.
 
-    python benchmarks/out_of_core.py                  # 10, 20, 40 m at 1 cm, 512 MB cache
+    python benchmarks/out_of_core.py                  # 4, 8, 12 m at 1 cm, 512 MB cache
     python benchmarks/out_of_core.py --quick          # 6 m at 4 cm (a smoke run)
 """
 
@@ -68,7 +68,7 @@ def _child(cfg: dict) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="6 m of street at 4 cm")
-    parser.add_argument("--lengths", default="10,20,40", help="street lengths in metres")
+    parser.add_argument("--lengths", default="4,8,12", help="street lengths in metres")
     parser.add_argument("--voxel", type=float, default=0.01)
     parser.add_argument("--tile-size", type=int, default=16)
     parser.add_argument("--cache-mb", type=float, default=512.0)

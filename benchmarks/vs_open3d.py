@@ -18,37 +18,26 @@ from __future__ import annotations
 
 import argparse
 import gc
-import importlib.util
 import os
 import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import Any
+from pathlib import Path
 
 import numpy as np
 
 from engine import FusionParams, GridSpec, NoiseModel, PinholeSensor, Scan, Volume
 from engine.synth import make_dataset
 
-#: Open3D's truncation, in voxels, and the depth beyond which it ignores a pixel, metres.
-TRUNC_VOXELS = 4.0
-DEPTH_MAX_M = 8.0
-#: Hash-map blocks Open3D allocates up front: enough for the room at 1 cm.
-BLOCKS_AT_1CM = 100_000
-
-
-def _import_open3d() -> tuple[Any, Any]:
-    try:
-        import open3d as o3d
-        import open3d.core as o3c
-    except ImportError as exc:
-        sys.exit(
-            f"vs_open3d: Open3D is not importable ({exc}).\n"
-            "Install the bench extra: make bench (or pip install -e '.[bench]'; "
-            "the wheel also needs libusb-1.0-0 from apt)."
-        )
-    return o3d, o3c
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _peers import (
+    TRUNC_VOXELS,
+    Open3DTSDF,
+    depth_images,
+    import_open3d,
+    open3d_available,
+)
 
 
 class PeakRSS:
@@ -81,24 +70,6 @@ class PeakRSS:
         self._sample()
 
 
-def depth_images(scans: Sequence[tuple[str, Scan]]) -> list[np.ndarray]:
-    """z-depth maps in metres, float32, 0 where a pixel has no measurement (Open3D's invalid)."""
-    out = []
-    for _, scan in scans:
-        sensor = scan.sensor
-        if not isinstance(sensor, PinholeSensor):
-            raise SystemExit(f"vs_open3d: needs a pinhole sensor, got {sensor.model}")
-        depth = scan.range_m.astype(np.float32)
-        if sensor.range_convention == "ray":  # |p| -> p_z along each pixel's ray
-            v, u = np.mgrid[0 : sensor.height, 0 : sensor.width]
-            x = (u - sensor.cx) / sensor.fx
-            y = (v - sensor.cy) / sensor.fy
-            depth = (depth / np.sqrt(x * x + y * y + 1.0)).astype(np.float32)
-        depth[~np.isfinite(depth)] = 0.0
-        out.append(np.ascontiguousarray(depth))
-    return out
-
-
 def run_rangefuse(
     scans: Sequence[tuple[str, Scan]], voxel_m: float, tile_vox: int
 ) -> dict[str, float]:
@@ -121,46 +92,16 @@ def run_open3d(
     sensor: PinholeSensor,
     voxel_m: float,
 ) -> dict[str, float]:
-    o3d, o3c = _import_open3d()
-    device = o3c.Device("CPU:0")
-    intrinsic = o3c.Tensor(
-        np.array([[sensor.fx, 0.0, sensor.cx], [0.0, sensor.fy, sensor.cy], [0.0, 0.0, 1.0]]),
-        o3c.float64,
-    )
-    extrinsics = [o3c.Tensor(np.linalg.inv(T_W_S), o3c.float64) for T_W_S in poses]
-    block_count = max(10_000, int(BLOCKS_AT_1CM * (0.01 / voxel_m) ** 2))
-
-    def new_grid() -> Any:
-        return o3d.t.geometry.VoxelBlockGrid(
-            attr_names=("tsdf", "weight"),
-            attr_dtypes=(o3c.float32, o3c.float32),
-            attr_channels=((1), (1)),
-            voxel_size=voxel_m,
-            block_resolution=8,
-            block_count=block_count,
-            device=device,
-        )
-
-    def integrate(vbg: Any, depth_np: np.ndarray, extrinsic: Any) -> None:
-        depth = o3d.t.geometry.Image(o3c.Tensor(depth_np))
-        kwargs: dict[str, Any] = {
-            "depth_scale": 1.0,
-            "depth_max": DEPTH_MAX_M,
-            "trunc_voxel_multiplier": TRUNC_VOXELS,
-        }
-        frustum = vbg.compute_unique_block_coordinates(depth, intrinsic, extrinsic, **kwargs)
-        vbg.integrate(frustum, depth, intrinsic, extrinsic, **kwargs)
-
-    integrate(new_grid(), depths[0], extrinsics[0])  # warm up
+    warm = Open3DTSDF(voxel_m, sensor)
+    warm.integrate(depths[0], warm.extrinsics(poses[:1])[0])  # allocate, warm up
+    del warm
     gc.collect()
-    vbg = new_grid()
+    tsdf = Open3DTSDF(voxel_m, sensor)
+    extrinsics = tsdf.extrinsics(poses)
     with PeakRSS() as rss:
-        t0 = time.perf_counter()
-        for depth_np, extrinsic in zip(depths, extrinsics, strict=True):
-            integrate(vbg, depth_np, extrinsic)
-        seconds = time.perf_counter() - t0
-    blocks = int(vbg.hashmap().size())
-    del vbg
+        seconds = tsdf.integrate_all(depths, extrinsics)
+    blocks = tsdf.blocks
+    del tsdf
     gc.collect()
     return {"seconds": seconds, "rss_mb": rss.peak_mb, "blocks": blocks}
 
@@ -200,8 +141,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parser.parse_args(argv)
     frames = args.frames or (10 if args.quick else 100)
     voxels = args.voxel or ([0.04] if args.quick else [0.02, 0.01])
-    if importlib.util.find_spec("open3d") is None:
-        _import_open3d()  # exits with the install hint
+    if not open3d_available():
+        import_open3d()  # exits with the install hint
     # numba picks its threading layer before Open3D loads its own TBB (else numba warns).
     import numba
 

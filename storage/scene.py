@@ -211,18 +211,24 @@ def _check_same(path: Path, what: str, stored: dict[str, Any], given: Any) -> No
 # the tile cache
 
 
+#: Tiles written per call when the cache writes back (bounds the temporary stack).
+_WRITE_CHUNK = 256
+
+
 class TileCache:
     """Tiles in memory under a byte budget; dirty tiles are written back when evicted.
 
-    Evicted dirty tiles must already be journaled (the scene journals a group's tiles
-    before integrating it).
+    The budget covers the resident tiles and the batch being worked on: the cache keeps
+    at most 3/4 of it in tiles, a batch is 1/4, and :meth:`store` keeps views of the
+    caller's batch array instead of copies. Evicted dirty tiles must already be journaled
+    (the scene journals a group's tiles before integrating it).
     """
 
     def __init__(self, tiles: ZarrTiles, tile_size: int, budget_bytes: int) -> None:
         self.tiles = tiles
         self.T = tile_size
         self.tile_bytes = tile_size**3 * 8
-        self.capacity = max(8, budget_bytes // self.tile_bytes)
+        self.capacity = max(8, (budget_bytes // self.tile_bytes) * 3 // 4)
         self._data: OrderedDict[int, np.ndarray] = OrderedDict()
         self._dirty: set[int] = set()
         self.written: set[int] = set()  # packed keys written since the last checkpoint
@@ -231,8 +237,8 @@ class TileCache:
 
     @property
     def batch(self) -> int:
-        """Tiles one integration batch may hold (half the capacity)."""
-        return max(4, self.capacity // 2)
+        """Tiles one integration batch may hold (a third of the resident capacity)."""
+        return max(4, self.capacity // 3)
 
     def fetch(self, keys: np.ndarray, new: np.ndarray) -> np.ndarray:
         """Copies of the tiles ``keys`` (int64 (n, 3)); ``new`` ones start as unknown."""
@@ -255,7 +261,7 @@ class TileCache:
     def store(self, keys: np.ndarray, data: np.ndarray) -> None:
         """Put updated tiles back (dirty); evicts the least recently used beyond capacity."""
         for p, tile in zip(pack_keys(keys).tolist(), data, strict=True):
-            self._data[p] = tile.copy()
+            self._data[p] = tile  # a view: the batch array lives while a tile of it is cached
             self._data.move_to_end(p)
             self._dirty.add(p)
         self._evict()
@@ -277,12 +283,12 @@ class TileCache:
         self._write(victims)
 
     def _write(self, items: list[tuple[int, np.ndarray]]) -> None:
-        if not items:
-            return
-        packed = np.array([p for p, _ in items], np.int64)
-        self.tiles.write(unpack_keys(packed), np.stack([t for _, t in items]))
-        self.written.update(packed.tolist())
-        self.writes += len(items)
+        for start in range(0, len(items), _WRITE_CHUNK):  # bounded temporary copies
+            part = items[start : start + _WRITE_CHUNK]
+            packed = np.array([p for p, _ in part], np.int64)
+            self.tiles.write(unpack_keys(packed), np.stack([t for _, t in part]))
+            self.written.update(packed.tolist())
+            self.writes += len(part)
 
     def flush(self) -> np.ndarray:
         """Write every dirty tile; returns the packed keys written since the last call."""

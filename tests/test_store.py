@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from engine import FusionParams, GridSpec, NoiseModel, Volume
-from engine.grid import pack_keys
+from engine.grid import pack_keys, unpack_keys
 from engine.synth import make_dataset
 from service.cli import main
 from storage import read_grid, write_dataset
@@ -194,6 +194,26 @@ def test_recovery_rebuilds_journaled_tiles_and_drops_orphans(tmp_path, room):
         assert "ghost" not in scene.archive.ids()
         _same_dense(scene.to_dense(), expected)
         assert len(scene.catalog.journal(scene.scene_id)) == 0
+
+
+def test_an_interrupted_removal_is_finished_at_the_next_open(tmp_path, room):
+    grid = _grid()
+    without = _memory(room.scans[1:4], grid)
+    with open_store(tmp_path / "s", grid, PARAMS) as scene:
+        _fill(scene, room.scans[:4])
+        victim = room.scans[0][0]
+        tiles, _ = scene.catalog.tiles_of_scan(scene.scene_id, victim)
+        with scene.catalog.transaction():  # what remove() commits before touching tiles
+            scene.catalog.set_scan_state(scene.scene_id, [victim], "removing")
+            scene.catalog.journal_add(scene.scene_id, tiles)
+        T = grid.tile_size_vox
+        half = unpack_keys(tiles[: len(tiles) // 2])
+        scene.tiles.write(half, np.full((len(half), T, T, T), 7, np.int64))  # killed midway
+    with open_store(tmp_path / "s") as scene:
+        assert scene.recovered["removals_resumed"] == 1
+        assert victim not in scene and victim not in scene.archive.ids()
+        _same_dense(scene.to_dense(), without.to_dense())
+        np.testing.assert_array_equal(scene.tile_keys(), without.tile_keys())
 
 
 def test_incremental_meshing_reuses_unchanged_tiles(tmp_path, room):

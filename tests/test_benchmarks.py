@@ -1,0 +1,48 @@
+"""Smoke runs of the benchmarks on tiny inputs (STYLE.md 21): they run and print a table.
+
+They are not timed tests: the numbers are for the closing notes, not for assertions.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def _run(script: str, *args: str) -> str:
+    out = subprocess.run(
+        [sys.executable, str(BENCH / script), *args], capture_output=True, text=True, timeout=600
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout
+
+
+@pytest.mark.slow
+def test_fusion_benchmark_smoke():
+    out = _run("fusion.py", "--quick", "--modes", "mapping")
+    assert "frames/s" in out and "mapping" in out
+
+
+@pytest.mark.slow
+def test_meshing_benchmark_smoke():
+    out = _run("meshing.py", "--quick")
+    assert "rangefuse refined" in out and "skimage (dense)" in out
+
+
+@pytest.mark.slow
+def test_out_of_core_benchmark_smoke(tmp_path):
+    out = _run("out_of_core.py", "--quick", "--tmp", str(tmp_path))
+    assert "speed-up from 1 to 2 worker processes" in out
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("open3d") is None, reason="needs the bench extra")
+def test_vs_open3d_benchmark_smoke():
+    out = _run("vs_open3d.py", "--quick")
+    assert "ratio" in out
