@@ -17,8 +17,10 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-# The service arrives with the REST issue; until then `make run` runs the demo pipeline.
-run: demo
+# The REST service on 127.0.0.1:8000 with the embedded default store in ./data (the first
+# start creates and prints a token).
+run: install
+	$(BIN)/rangefuse serve --data-dir data --host 127.0.0.1 --port 8000
 
 demo: install
 	$(BIN)/rangefuse synth object out/demo-object --views 12

@@ -45,6 +45,7 @@ from ._cliutil import (
     write_outputs,
 )
 from ._progress import ProgressBar
+from ._serve_cli import add_serve_commands
 from ._store_cli import add_store_commands, fuse_into_store, workers_option
 
 __all__ = ["main"]
@@ -299,6 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
     fuse.add_argument("--quiet", action="store_true", help="no progress bar")
     fuse.set_defaults(func=_cmd_fuse)
     add_store_commands(sub)
+    add_serve_commands(sub)
     return parser
 
 

@@ -15,6 +15,7 @@ from .grids import read_grid, write_grid
 from .scene import (
     Scene,
     SceneConflictError,
+    Store,
     StoreError,
     StoreLockedError,
     StoreVersionError,
@@ -31,6 +32,7 @@ __all__ = [
     "ScanArchive",
     "Scene",
     "SceneConflictError",
+    "Store",
     "StoreError",
     "StoreLockedError",
     "StoreVersionError",

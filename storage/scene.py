@@ -15,6 +15,7 @@ import fcntl
 import json
 import math
 import os
+import shutil
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -48,6 +49,7 @@ __all__ = [
     "Runner",
     "Scene",
     "SceneConflictError",
+    "Store",
     "StoreError",
     "StoreLockedError",
     "StoreVersionError",
@@ -59,6 +61,12 @@ __all__ = [
 
 STORE_VERSION = 1
 _MARKER = "rangefuse-store.json"
+#: What a store holds before its marker is written: a creation killed midway is resumed.
+_CREATION_NAMES = frozenset(
+    {"catalog.sqlite", "catalog.sqlite-wal", "catalog.sqlite-shm", "catalog.sqlite-journal",
+     "lock", "scenes",
+     f".{_MARKER}.tmp"}
+)  # fmt: skip
 #: Default memory budget of the tile cache.
 CACHE_MB = 512
 #: Scans integrated between two checkpoints.
@@ -86,60 +94,177 @@ class SceneConflictError(StoreError):
 
 
 # --------------------------------------------------------------------------------------------
-# the store: a directory with a marker, a lock and a catalog
+# the store: a directory with a marker, a catalog and scenes
 
 
-@dataclass
-class _Store:
-    path: Path
-    catalog: Catalog
-    lock_fd: int
+class Store:
+    """A store directory: the layout marker, the catalog and one folder per scene.
+
+    Many processes may open a store (the service's API process stores uploads while worker
+    processes fuse); tiles of a scene are written only by the holder of the scene's writer
+    lock (:meth:`open_scene`).
+    """
+
+    def __init__(self, path: Path, catalog: Catalog) -> None:
+        self.path = path
+        self.catalog = catalog
+
+    @staticmethod
+    def open(path: str | os.PathLike[str], create: bool = False) -> Store:
+        """Open a store (creating an empty one if ``create``); checks the layout version."""
+        path = Path(path)
+        marker = path / _MARKER
+        if marker.exists():
+            try:
+                meta = json.loads(marker.read_text())
+                version = int(meta["version"])
+            except (ValueError, KeyError, TypeError) as exc:
+                raise StoreError(f"{path}: damaged {_MARKER} ({exc})") from None
+            if meta.get("format") != "rangefuse-store":
+                raise StoreError(f"{path}: not a rangefuse store")
+            if version != STORE_VERSION:
+                raise StoreVersionError(
+                    f"{path}: store layout version {version}; this rangefuse reads version "
+                    f"{STORE_VERSION}"
+                )
+        elif not create:
+            raise StoreError(f"{path}: not a rangefuse store (no {_MARKER})")
+        elif path.exists() and (
+            not path.is_dir() or any(p.name not in _CREATION_NAMES for p in path.iterdir())
+        ):
+            raise StoreError(f"{path}: exists and is not an empty folder or a rangefuse store")
+        path.mkdir(parents=True, exist_ok=True)
+        catalog = Catalog(path / "catalog.sqlite")
+        if not marker.exists():
+            tmp = path / f".{_MARKER}.tmp"
+            tmp.write_text(json.dumps({"format": "rangefuse-store", "version": STORE_VERSION}))
+            with open(tmp, "rb") as fh:
+                os.fsync(fh.fileno())
+            os.replace(tmp, marker)
+            _fsync_dir(path)
+        return Store(path, catalog)
 
     def close(self) -> None:
         self.catalog.close()
-        os.close(self.lock_fd)
 
+    def __enter__(self) -> Store:
+        return self
 
-def _open_dir(path: Path, create: bool) -> _Store:
-    marker = path / _MARKER
-    if marker.exists():
-        try:
-            meta = json.loads(marker.read_text())
-            version = int(meta["version"])
-        except (ValueError, KeyError, TypeError) as exc:
-            raise StoreError(f"{path}: damaged {_MARKER} ({exc})") from None
-        if meta.get("format") != "rangefuse-store":
-            raise StoreError(f"{path}: not a rangefuse store")
-        if version != STORE_VERSION:
-            raise StoreVersionError(
-                f"{path}: store layout version {version}; this rangefuse reads version "
-                f"{STORE_VERSION}"
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- scenes -------------------------------------------------------------------------------
+    def scene_path(self, scene_id: str) -> Path:
+        return self.path / "scenes" / scene_id
+
+    def create_scene(
+        self,
+        scene_id: str,
+        grid: GridSpec,
+        params: FusionParams,
+        name: str | None = None,
+        tenant: str = "local",
+    ) -> None:
+        """Record a scene and create its Zarr group and tile array."""
+        group = self.scene_path(scene_id) / "scene.zarr"
+        ZarrTiles.create(group, grid.tile_size_vox)
+        with self.catalog.transaction():
+            self.catalog.create_scene(
+                scene_id, name or scene_id, tenant, grid.to_dict(), params.to_dict()
             )
-    elif not create:
-        raise StoreError(f"{path}: not a rangefuse store (no {_MARKER})")
-    elif path.exists() and (not path.is_dir() or any(path.iterdir())):
-        raise StoreError(f"{path}: exists and is not an empty folder or a rangefuse store")
-    path.mkdir(parents=True, exist_ok=True)
-    lock_fd = os.open(path / "lock", os.O_RDWR | os.O_CREAT, 0o644)
+
+    def scene_spec(self, scene_id: str) -> tuple[GridSpec, FusionParams]:
+        row = self.catalog.scene(scene_id)
+        if row is None:
+            raise StoreError(f"{self.path}: holds no scene {scene_id!r}")
+        return GridSpec.from_dict(row.grid), FusionParams.from_dict(row.params)
+
+    def delete_scene(self, scene_id: str) -> None:
+        """Remove a scene and its files (waits for no writer: takes its lock)."""
+        lock_fd = _lock_scene(self.scene_path(scene_id), wait=True)
+        try:
+            self.catalog.delete_scene(scene_id)
+            shutil.rmtree(self.scene_path(scene_id) / "scene.zarr", ignore_errors=True)
+        finally:
+            os.close(lock_fd)
+        shutil.rmtree(self.scene_path(scene_id), ignore_errors=True)
+
+    def store_scan(
+        self, scene_id: str, scan_id: str, scan: Scan, name: str | None = None
+    ) -> ScanRow:
+        """Archive a scan durably, then record it as ``stored``: the acknowledgement.
+
+        Needs no writer lock: archive entries are written once under their own name.
+        """
+        grid, params = self.scene_spec(scene_id)
+        del grid
+        if self.catalog.scan(scene_id, scan_id) is not None:
+            raise SceneConflictError(f"scan {scan_id!r} is already in the scene")
+        prepared = prepare_scan(scan, params)  # validates against the scene's parameters
+        archive = ScanArchive(self.scene_path(scene_id) / "scene.zarr")
+        checksum = archive.put(scan_id, scan, name)
+        try:
+            self.catalog.add_scan(
+                scene_id,
+                scan_id,
+                name,
+                prepared.origin_W.tolist(),
+                reach_radius(prepared),
+                checksum,
+            )
+        except BaseException:
+            archive.delete(scan_id)
+            raise
+        row = self.catalog.scan(scene_id, scan_id)
+        assert row is not None
+        return row
+
+    def cleanup_uploads(self, scene_id: str) -> dict[str, int]:
+        """Delete archive entries that were never acknowledged (a kill between the archive
+        write and the catalog row). Only while no upload to the scene is in flight: at the
+        start of the process that uploads (the command line, the service's API process)."""
+        archive = ScanArchive(self.scene_path(scene_id) / "scene.zarr")
+        report = {"temporaries": archive.remove_temporaries()}
+        known = {r.id for r in self.catalog.scans(scene_id)}
+        orphans = [s for s in archive.ids() if s not in known]
+        for scan_id in orphans:
+            archive.delete(scan_id)
+        report["orphan_scans"] = len(orphans)
+        return report
+
+    def open_scene(
+        self,
+        scene_id: str,
+        cache_mb: float = CACHE_MB,
+        runner: Runner | None = None,
+        wait: bool = False,
+    ) -> Scene:
+        """Take the scene's writer lock (waiting for it with ``wait``), recover the scene and
+        return it for fusion and removal."""
+        grid, params = self.scene_spec(scene_id)
+        lock_fd = _lock_scene(self.scene_path(scene_id), wait=wait)
+        try:
+            return Scene(self, scene_id, grid, params, cache_mb, runner, lock_fd)
+        except BaseException:
+            os.close(lock_fd)
+            raise
+
+
+def _lock_scene(folder: Path, wait: bool) -> int:
+    folder.mkdir(parents=True, exist_ok=True)
+    lock_fd = os.open(folder / "lock", os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        fcntl.flock(lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(lock_fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
     except BlockingIOError:
         holder = os.pread(lock_fd, 32, 0).decode(errors="replace").strip() or "?"
         os.close(lock_fd)
         raise StoreLockedError(
-            f"{path}: in use by another rangefuse process (pid {holder}); one writer at a time"
+            f"{folder}: the scene is being written by another rangefuse process "
+            f"(pid {holder}); one writer at a time"
         ) from None
     os.ftruncate(lock_fd, 0)
     os.pwrite(lock_fd, f"{os.getpid()}\n".encode(), 0)
-    catalog = Catalog(path / "catalog.sqlite")
-    if not marker.exists():
-        tmp = path / f".{_MARKER}.tmp"
-        tmp.write_text(json.dumps({"format": "rangefuse-store", "version": STORE_VERSION}))
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, marker)
-        _fsync_dir(path)
-    return _Store(path, catalog, lock_fd)
+    return lock_fd
 
 
 def _fsync_dir(path: Path) -> None:
@@ -159,34 +284,33 @@ def open_store(
     cache_mb: float = CACHE_MB,
     runner: Runner | None = None,
 ) -> Scene:
-    """Open (and recover) the scene of a store, creating both when ``grid`` and ``params``
-    are given and the store does not hold the scene yet.
+    """Open (and recover) a scene of a store for writing, creating the store and the scene
+    when ``grid`` and ``params`` are given and they do not exist yet (the command line).
+
+    The returned scene owns the store: closing it closes both.
 
     Raises
     ------
     StoreError
-        Not a store, another layout version (:class:`StoreVersionError`), locked by another
-        process (:class:`StoreLockedError`), or ``grid``/``params`` that disagree with the
-        existing scene (:class:`SceneConflictError`).
+        Not a store, another layout version (:class:`StoreVersionError`), the scene written
+        by another process (:class:`StoreLockedError`), or ``grid``/``params`` that
+        disagree with the existing scene (:class:`SceneConflictError`).
     """
     path = Path(path)
-    store = _open_dir(path, create=grid is not None)
+    store = Store.open(path, create=grid is not None)
     try:
         row = store.catalog.scene(scene_id)
         if row is None:
             if grid is None or params is None:
                 raise StoreError(f"{path}: holds no scene {scene_id!r}")
-            store.catalog.create_scene(
-                scene_id, scene_id, "local", grid.to_dict(), params.to_dict()
-            )
+            store.create_scene(scene_id, grid, params)
         else:
-            stored_grid = GridSpec.from_dict(row.grid)
-            stored_params = FusionParams.from_dict(row.params)
-            _check_same(path, "grid", stored_grid.to_dict(), grid)
-            _check_same(path, "fusion parameters", stored_params.to_dict(), params)
-            grid, params = stored_grid, stored_params
-        assert grid is not None and params is not None
-        return Scene(store, scene_id, grid, params, cache_mb, runner)
+            _check_same(path, "grid", row.grid, grid)
+            _check_same(path, "fusion parameters", row.params, params)
+        scene = store.open_scene(scene_id, cache_mb, runner)
+        scene.owns_store = True
+        scene.recovered.update(store.cleanup_uploads(scene_id))
+        return scene
     except BaseException:
         store.close()
         raise
@@ -496,24 +620,24 @@ class Scene:
 
     def __init__(
         self,
-        store: _Store,
+        store: Store,
         scene_id: str,
         grid: GridSpec,
         params: FusionParams,
         cache_mb: float,
-        runner: Runner | None = None,
+        runner: Runner | None,
+        lock_fd: int,
     ) -> None:
-        self._store = store
+        self.store = store
+        self._lock_fd = lock_fd
+        self.owns_store = False
         self.path = store.path
         self.scene_id = scene_id
         self.grid = grid
         self.params = params
         self.catalog = store.catalog
-        self.group_path = store.path / "scenes" / scene_id / "scene.zarr"
-        if (self.group_path / "tiles").exists():
-            self.tiles = ZarrTiles.open(self.group_path)
-        else:
-            self.tiles = ZarrTiles.create(self.group_path, grid.tile_size_vox)
+        self.group_path = store.scene_path(scene_id) / "scene.zarr"
+        self.tiles = ZarrTiles.open(self.group_path)
         self.archive = ScanArchive(self.group_path)
         self.cache_mb = cache_mb
         self.cache = TileCache(self.tiles, grid.tile_size_vox, int(cache_mb * 2**20))
@@ -522,7 +646,9 @@ class Scene:
         self.recovered = self._recover()
 
     def close(self) -> None:
-        self._store.close()
+        os.close(self._lock_fd)
+        if self.owns_store:
+            self.store.close()
 
     def __enter__(self) -> Scene:
         return self
@@ -539,25 +665,9 @@ class Scene:
         return isinstance(scan_id, str) and self.catalog.scan(self.scene_id, scan_id) is not None
 
     def store_scan(self, scan_id: str, scan: Scan, name: str | None = None) -> ScanRow:
-        """Archive a scan durably and record it as ``stored``: from now on it is never lost.
-
-        :meth:`integrate_pending` fuses it.
-        """
-        if scan_id in self:
-            raise SceneConflictError(f"scan {scan_id!r} is already in the scene")
-        prepared = prepare_scan(scan, self.params)  # validates against the scene's parameters
-        checksum = self.archive.put(scan_id, scan, name)
-        self.catalog.add_scan(
-            self.scene_id,
-            scan_id,
-            name,
-            prepared.origin_W.tolist(),
-            reach_radius(prepared),
-            checksum,
-        )
-        row = self.catalog.scan(self.scene_id, scan_id)
-        assert row is not None
-        return row
+        """Archive a scan durably and record it as ``stored`` (see :meth:`Store.store_scan`);
+        :meth:`integrate_pending` fuses it."""
+        return self.store.store_scan(self.scene_id, scan_id, scan, name)
 
     def _load(self, scan_id: str) -> PreparedScan:
         prepared = self._prepared.get(scan_id)
@@ -787,12 +897,7 @@ class Scene:
     # --- recovery -----------------------------------------------------------------------------
     def _recover(self) -> dict[str, int]:
         """Bring the store back to its last committed state after an interruption."""
-        report = {"temporaries": self.archive.remove_temporaries()}
-        known = {r.id for r in self.scan_rows()}
-        orphans = [s for s in self.archive.ids() if s not in known]
-        for scan_id in orphans:
-            self.archive.delete(scan_id)
-        report["orphan_scans"] = len(orphans)
+        report: dict[str, int] = {}
         journal = self.catalog.journal(self.scene_id)
         report["partials"] = self.tiles.remove_partials() if len(journal) else 0
         report["rebuilt_tiles"] = len(journal)

@@ -1,0 +1,142 @@
+"""Load on the REST service: concurrent clients uploading scans (issue: REST service).
+
+Starts ``rangefuse serve`` on loopback with a fresh store, creates a scene (the synthetic
+object, closed mode), and has N clients upload M scans each at the same time. Prints upload
+latency (p50, p99), uploads/s, the time until every scan is fused, and checks that every
+scan was fused exactly once: the scene's volume equals, bit for bit, the in-memory fusion
+of all uploaded scans.
+
+    python benchmarks/service_load.py                 # 8 clients x 25 scans
+    python benchmarks/service_load.py --quick         # 2 clients x 3 scans
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--clients", type=int, default=8)
+    parser.add_argument("--scans", type=int, default=25, help="per client")
+    parser.add_argument("--voxel", type=float, default=0.04)
+    args = parser.parse_args()
+    clients, per = (2, 3) if args.quick else (args.clients, args.scans)
+    sys.path.insert(0, str(ROOT))
+    from engine import Volume
+    from engine.synth import make_dataset
+    from storage import Store
+
+    data = make_dataset("object", views=per)
+    payloads = []
+    for _, scan in data.scans:
+        buf = io.BytesIO()
+        np.save(buf, scan.range_m)
+        meta = json.dumps({"pose": scan.T_W_S.tolist(), "sensor": scan.sensor.to_dict()})
+        payloads.append((buf.getvalue(), meta))
+    with tempfile.TemporaryDirectory() as tmp:
+        port = _port()
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "RANGEFUSE_POLL_S": "0.05"}
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "serve", "--data-dir", f"{tmp}/data",
+             "--port", str(port)],
+            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )  # fmt: skip
+        try:
+            token = ""
+            assert proc.stdout is not None
+            while not token:
+                line = proc.stdout.readline()
+                if not line:
+                    raise SystemExit("the server did not start")
+                if "created a token" in line:
+                    token = line.rsplit(" ", 1)[1].strip()
+            url = f"http://127.0.0.1:{port}"
+            headers = {"Authorization": f"Bearer {token}"}
+            for _ in range(100):
+                try:
+                    httpx.get(f"{url}/healthz", timeout=1)
+                    break
+                except httpx.HTTPError:
+                    time.sleep(0.2)
+            body = {"name": "load", "voxel_size": args.voxel, "mode": "closed",
+                    "bounds": list(data.bounds_m)}  # fmt: skip
+            sid = httpx.post(f"{url}/v1/scenes", json=body, headers=headers).json()["id"]
+            latencies: list[float] = []
+            statuses: list[int] = []
+            lock = threading.Lock()
+
+            def client() -> None:
+                with httpx.Client(base_url=url, headers=headers, timeout=120) as c:
+                    for rng, meta in payloads:
+                        t0 = time.perf_counter()
+                        r = c.post(
+                            f"/v1/scenes/{sid}/scans",
+                            files={"range": ("r.npy", rng), "meta": (None, meta)},
+                        )
+                        with lock:
+                            latencies.append(time.perf_counter() - t0)
+                            statuses.append(r.status_code)
+
+            t0 = time.perf_counter()
+            threads = [threading.Thread(target=client) for _ in range(clients)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            upload_s = time.perf_counter() - t0
+            with httpx.Client(base_url=url, headers=headers, timeout=60) as c:
+                while True:
+                    scans = c.get(f"/v1/scenes/{sid}/scans").json()
+                    if all(s["state"] == "fused" for s in scans):
+                        break
+                    time.sleep(0.2)
+            fused_s = time.perf_counter() - t0
+        finally:
+            proc.terminate()
+            proc.wait(timeout=30)
+        n = clients * per
+        lat = np.array(latencies) * 1000
+        ok = sum(1 for s in statuses if s == 202)
+        five = sum(1 for s in statuses if s >= 500)
+        with Store.open(f"{tmp}/data") as store, store.open_scene(sid) as scene:
+            served = scene.to_dense()
+            grid, params = scene.grid, scene.params
+        volume = Volume(grid, params)
+        volume.add_many(
+            [(f"{c}-{k}", scan) for c in range(clients) for k, (_, scan) in enumerate(data.scans)]
+        )
+        exact = np.array_equal(volume.to_dense().logodds, served.logodds, equal_nan=True)
+    print(f"{clients} clients x {per} scans of 640x480 (1.2 MB .npy each), voxel {args.voxel} m")
+    print(f"{'uploads':>7} {'202':>5} {'5xx':>4} {'p50 ms':>7} {'p99 ms':>7} {'uploads/s':>9} "
+          f"{'all fused s':>11} {'scans/s fused':>13} {'exactly once':>12}")  # fmt: skip
+    print(
+        f"{n:7d} {ok:5d} {five:4d} {np.percentile(lat, 50):7.1f} {np.percentile(lat, 99):7.1f} "
+        f"{n / upload_s:9.1f} {fused_s:11.1f} {n / fused_s:13.1f} {exact!s:>12}"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,70 @@
+"""``rangefuse serve`` and ``rangefuse token create``: the REST service from the command line."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+from storage import Store
+
+from ._cliutil import CommandError, positive_int
+
+__all__ = ["add_serve_commands"]
+
+
+def _settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    from .settings import Settings
+
+    values = {}
+    if args.data_dir is not None:
+        values["data_dir"] = args.data_dir
+    for name in ("host", "port", "workers"):
+        if getattr(args, name, None) is not None:
+            values[name] = getattr(args, name)
+    try:
+        return Settings(**values)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from .app import create_app, create_token
+
+    settings = _settings(args)
+    os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(settings.data_dir) / ".numba_cache"))
+    app = create_app(settings)  # creates the store when missing
+    with Store.open(settings.data_dir) as store:
+        if store.catalog.n_tokens() == 0:
+            token = create_token(store, "default")
+            print(f"first start: created a token for tenant 'default': {token}", flush=True)
+            print("  use it as: Authorization: Bearer TOKEN", flush=True)
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
+    return 0
+
+
+def _cmd_token(args: argparse.Namespace) -> int:
+    from .app import create_token
+
+    settings = _settings(args)
+    with Store.open(settings.data_dir, create=True) as store:
+        print(create_token(store, args.tenant))
+    return 0
+
+
+def add_serve_commands(sub: argparse._SubParsersAction) -> None:
+    serve = sub.add_parser("serve", help="run the REST service (uvicorn)")
+    serve.add_argument("--data-dir", type=Path, default=None, help="store (RANGEFUSE_DATA_DIR)")
+    serve.add_argument("--host", default=None, help="address (default 127.0.0.1)")
+    serve.add_argument("--port", type=positive_int, default=None, help="port (default 8000)")
+    serve.add_argument("--workers", type=positive_int, default=None, help="job processes")
+    serve.set_defaults(func=_cmd_serve)
+
+    token = sub.add_parser("token", help="manage API tokens")
+    token_sub = token.add_subparsers(dest="token_command", required=True, metavar="ACTION")
+    create = token_sub.add_parser("create", help="create a token for a tenant and print it")
+    create.add_argument("--tenant", required=True, help="tenant name")
+    create.add_argument("--data-dir", type=Path, default=None, help="store (RANGEFUSE_DATA_DIR)")
+    create.set_defaults(func=_cmd_token)

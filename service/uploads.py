@@ -1,0 +1,301 @@
+"""Decoding uploaded scans: the ``range`` part and the ``meta`` JSON of a multipart upload.
+
+Accepted range files (sniffed from their first bytes, not their names): a ``.npy`` float
+array (never unpickled), a FORMAT.md scan ``.npz``, a 16-bit greyscale PNG depth image (with
+``depth_scale`` metres per unit in the metadata; 0 is invalid) and a float32 TIFF
+(uncompressed, one sample per pixel). Every problem raises :class:`UploadError` with a
+message that names the part and what is wrong.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import struct
+import tempfile
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from engine import InvalidInputError, NoiseModel, Scan, sensor_from_dict
+from storage import DatasetError
+from storage.dataset import read_scan_file
+
+__all__ = ["UploadError", "UploadedScan", "decode_scan"]
+
+#: Largest image side accepted (pixels).
+MAX_SIDE = 1 << 15
+
+
+class UploadError(ValueError):
+    """A malformed upload (HTTP 400/422 with this message)."""
+
+
+@dataclass(frozen=True)
+class UploadedScan:
+    scan: Scan
+    name: str | None
+
+
+def _meta(text: bytes) -> dict[str, Any]:
+    try:
+        meta = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise UploadError(f"meta: not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise UploadError(f"meta: must be a JSON object, got {type(meta).__name__}")
+    known = {"name", "pose", "sensor", "noise", "depth_scale"}
+    unknown = sorted(set(meta) - known)
+    if unknown:
+        raise UploadError(f"meta.{unknown[0]}: unknown field (known: {sorted(known)})")
+    return meta
+
+
+def decode_scan(range_bytes: bytes, meta_bytes: bytes) -> UploadedScan:
+    """Build a validated :class:`engine.Scan` from the two parts of an upload."""
+    meta = _meta(meta_bytes)
+    name = meta.get("name")
+    if name is not None and (not isinstance(name, str) or not 0 < len(name) <= 200):
+        raise UploadError("meta.name: must be a string of 1 to 200 characters")
+    if not range_bytes:
+        raise UploadError("range: empty file")
+    head = range_bytes[:8]
+    try:
+        if head.startswith(b"PK"):
+            scan = _npz_scan(range_bytes, meta)
+            return UploadedScan(scan, name)
+        if head.startswith(b"\x93NUMPY"):
+            rng = _npy(range_bytes)
+        elif head.startswith(b"\x89PNG\r\n\x1a\n"):
+            rng = _png_depth(range_bytes, meta)
+        elif head[:4] in (b"II*\x00", b"MM\x00*"):
+            rng = _tiff_float(range_bytes)
+        else:
+            raise UploadError(
+                "range: not a .npy, .npz, PNG or TIFF file (unrecognised first bytes)"
+            )
+        for field in ("pose", "sensor"):
+            if field not in meta:
+                raise UploadError(f"meta.{field}: missing")
+        sensor = sensor_from_dict(meta["sensor"])
+        noise = None if meta.get("noise") is None else _noise(meta["noise"])
+        pose = meta["pose"]
+        if not isinstance(pose, list):
+            raise UploadError("meta.pose: must be a 4x4 list of numbers (sensor to world)")
+        try:
+            pose_arr = np.array(pose, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise UploadError(
+                "meta.pose: must be a 4x4 list of numbers (sensor to world)"
+            ) from None
+        return UploadedScan(Scan(range_m=rng, T_W_S=pose_arr, sensor=sensor, noise=noise), name)
+    except InvalidInputError as exc:
+        raise UploadError(str(exc)) from None
+
+
+def _noise(data: Any) -> NoiseModel:
+    if not isinstance(data, dict):
+        raise UploadError("meta.noise: must be an object")
+    mapping = {"eps": "eps_m", "eps_per_m": "eps_per_m", "rho": "rho", "falloff": "falloff_m"}
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        if key == "shape":
+            kwargs["shape"] = value
+        elif key in mapping:
+            kwargs[mapping[key]] = value
+        else:
+            raise UploadError(
+                f"meta.noise.{key}: unknown (known: eps, eps_per_m, rho, falloff, shape)"
+            )
+    if "eps_m" not in kwargs:
+        raise UploadError("meta.noise.eps: missing")
+    return NoiseModel(**kwargs)
+
+
+def _npy(data: bytes) -> np.ndarray:
+    try:
+        arr = np.load(io.BytesIO(data), allow_pickle=False)
+    except ValueError as exc:
+        if "pickle" in str(exc).lower():
+            raise UploadError("range: the .npy holds Python objects (pickled); refused") from None
+        raise UploadError(f"range: not a readable .npy ({exc})") from None
+    except (OSError, EOFError) as exc:
+        raise UploadError(f"range: truncated or damaged .npy ({exc})") from None
+    if arr.dtype.kind != "f" or arr.dtype.itemsize not in (4, 8):
+        raise UploadError(f"range: must be float32 metres, got dtype {arr.dtype}")
+    if arr.ndim != 2:
+        raise UploadError(f"range: must be a 2-D array (H x W), got shape {arr.shape}")
+    return arr.astype(np.float32)
+
+
+def _npz_scan(data: bytes, meta: dict[str, Any]) -> Scan:
+    default = sensor_from_dict(meta["sensor"]) if "sensor" in meta else None
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "scan.npz"
+        path.write_bytes(data)
+        try:
+            scan = read_scan_file(path, default)
+        except DatasetError as exc:
+            raise UploadError(f"range: {str(exc).split(': ', 1)[-1]}") from None
+    if "pose" in meta and not np.allclose(np.asarray(meta["pose"], float), scan.T_W_S):
+        raise UploadError("meta.pose: disagrees with the pose inside the .npz")
+    return scan
+
+
+# --- PNG (16-bit or 8-bit greyscale, non-interlaced) ------------------------------------------
+
+
+def _png_depth(data: bytes, meta: dict[str, Any]) -> np.ndarray:
+    scale = meta.get("depth_scale")
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)):
+        raise UploadError("meta.depth_scale: a PNG depth image needs depth_scale (metres per unit)")
+    if not (math.isfinite(scale) and scale > 0):
+        raise UploadError(f"meta.depth_scale: must be a positive number, got {scale}")
+    values = decode_png_grey(data)
+    depth = values.astype(np.float32) * np.float32(scale)
+    depth[values == 0] = np.nan
+    return depth
+
+
+def decode_png_grey(data: bytes) -> np.ndarray:
+    """Pixels of a greyscale PNG (8 or 16 bits, no interlace) as uint8/uint16 (H, W)."""
+    pos = 8
+    width = height = depth = 0
+    idat = []
+    while pos + 8 <= len(data):
+        length, kind = struct.unpack(">I4s", data[pos : pos + 8])
+        chunk = data[pos + 8 : pos + 8 + length]
+        if len(chunk) != length:
+            raise UploadError("range: truncated PNG")
+        if kind == b"IHDR":
+            width, height, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", chunk)
+            if colour != 0 or depth not in (8, 16) or interlace != 0:
+                raise UploadError(
+                    "range: PNG must be greyscale, 8 or 16 bits per pixel, not interlaced"
+                )
+            if not (0 < width <= MAX_SIDE and 0 < height <= MAX_SIDE):
+                raise UploadError(f"range: PNG of {width} x {height} pixels is not sensible")
+        elif kind == b"IDAT":
+            idat.append(chunk)
+        elif kind == b"IEND":
+            break
+        pos += 12 + length
+    if not width or not idat:
+        raise UploadError("range: PNG without image data")
+    bpp = depth // 8
+    stride = width * bpp
+    try:
+        raw = zlib.decompressobj().decompress(b"".join(idat), height * (stride + 1))
+    except zlib.error as exc:
+        raise UploadError(f"range: damaged PNG data ({exc})") from None
+    if len(raw) < height * (stride + 1):
+        raise UploadError("range: truncated PNG data")
+    rows = np.frombuffer(raw[: height * (stride + 1)], np.uint8).reshape(height, stride + 1)
+    out = np.zeros((height, stride), np.uint8)
+    prev = np.zeros(stride, np.int32)
+    for y in range(height):
+        kind, line = rows[y, 0], rows[y, 1:].astype(np.int32)
+        if kind == 0:
+            cur = line
+        elif kind == 2:
+            cur = (line + prev) & 0xFF
+        else:  # sub, average, paeth: sequential in x
+            cur = np.zeros(stride, np.int32)
+            for x in range(stride):
+                a = int(cur[x - bpp]) if x >= bpp else 0
+                b = int(prev[x])
+                c = int(prev[x - bpp]) if x >= bpp else 0
+                if kind == 1:
+                    pred = a
+                elif kind == 3:
+                    pred = (a + b) // 2
+                elif kind == 4:
+                    p = a + b - c
+                    pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
+                    pred = a if pa <= pb and pa <= pc else (b if pb <= pc else c)
+                else:
+                    raise UploadError(f"range: bad PNG filter type {kind}")
+                cur[x] = (int(line[x]) + pred) & 0xFF
+        out[y] = cur
+        prev = cur
+    if depth == 16:
+        return out.view(">u2").astype(np.uint16).reshape(height, width)
+    return out.reshape(height, width)
+
+
+def encode_png_grey16(values: np.ndarray) -> bytes:
+    """A 16-bit greyscale PNG (for tests and clients)."""
+    values = np.ascontiguousarray(values, ">u2")
+    h, w = values.shape
+    raw = b"".join(b"\x00" + values[y].tobytes() for y in range(h))
+    return _png(w, h, 16, 0, raw)
+
+
+def encode_png_rgb(rgb: np.ndarray) -> bytes:
+    """An 8-bit RGB PNG of an (H, W, 3) uint8 array."""
+    rgb = np.ascontiguousarray(rgb, np.uint8)
+    h, w, _ = rgb.shape
+    raw = b"".join(b"\x00" + rgb[y].tobytes() for y in range(h))
+    return _png(w, h, 8, 2, raw)
+
+
+def _png(w: int, h: int, depth: int, colour: int, raw: bytes) -> bytes:
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(body)) + kind + body
+            + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
+        )  # fmt: skip
+
+    ihdr = struct.pack(">IIBBBBB", w, h, depth, colour, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw, 6))
+        + chunk(b"IEND", b"")
+    )  # fmt: skip
+
+
+# --- TIFF (float32, uncompressed, one sample per pixel) ---------------------------------------
+
+
+def _tiff_float(data: bytes) -> np.ndarray:
+    endian = "<" if data[:2] == b"II" else ">"
+    try:
+        (ifd,) = struct.unpack(endian + "I", data[4:8])
+        (count,) = struct.unpack(endian + "H", data[ifd : ifd + 2])
+        tags: dict[int, list[int]] = {}
+        sizes = {3: (2, "H"), 4: (4, "I")}
+        for n in range(count):
+            entry = data[ifd + 2 + 12 * n : ifd + 14 + 12 * n]
+            tag, typ, num = struct.unpack(endian + "HHI", entry[:8])
+            if typ not in sizes:
+                continue
+            size, code = sizes[typ]
+            if size * num <= 4:
+                body = entry[8 : 8 + size * num]
+            else:
+                (off,) = struct.unpack(endian + "I", entry[8:12])
+                body = data[off : off + size * num]
+            tags[tag] = list(struct.unpack(endian + code * num, body))
+    except struct.error:
+        raise UploadError("range: truncated TIFF") from None
+    width, height = tags.get(256, [0])[0], tags.get(257, [0])[0]
+    bits, compression = tags.get(258, [0])[0], tags.get(259, [1])[0]
+    fmt, spp = tags.get(339, [1])[0], tags.get(277, [1])[0]
+    if bits != 32 or fmt != 3 or spp != 1:
+        raise UploadError("range: TIFF must hold float32 samples, one per pixel")
+    if compression != 1:
+        raise UploadError("range: compressed TIFF is not supported; write it uncompressed")
+    if not (0 < width <= MAX_SIDE and 0 < height <= MAX_SIDE):
+        raise UploadError(f"range: TIFF of {width} x {height} pixels is not sensible")
+    offsets, counts = tags.get(273, []), tags.get(279, [])
+    body = b"".join(data[o : o + c] for o, c in zip(offsets, counts, strict=False))
+    if len(body) < width * height * 4:
+        raise UploadError("range: truncated TIFF image data")
+    return (
+        np.frombuffer(body[: width * height * 4], endian + "f4")
+        .reshape(height, width)
+        .astype(np.float32)
+    )
