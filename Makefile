@@ -7,7 +7,7 @@ BENCH_STAMP := $(VENV)/.installed-bench
 export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
 PYTEST_FLAGS ?= -q
 
-.PHONY: install run demo test check lint types bench bench-full clean
+.PHONY: install run demo test test-real check lint types bench bench-full clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -29,6 +29,15 @@ demo: install
 
 test: install
 	$(BIN)/pytest $(PYTEST_FLAGS) -m "not real_data"
+
+# Tests on real scanner data (the Stanford bunny) read from ../shared/data; they fail here,
+# not skip, when the data are missing.
+SHARED_DATA ?= $(CURDIR)/../shared/data
+test-real: install
+	@test -f "$(SHARED_DATA)/stanford-bunny/scans/bun.conf" || { \
+		echo "make test-real: the real data are missing: no $(SHARED_DATA)/stanford-bunny/scans/bun.conf" \
+			"(the real-data tests read ../shared/data; see tests/test_bunny.py)" >&2; exit 1; }
+	RANGEFUSE_SHARED_DATA="$(SHARED_DATA)" $(BIN)/pytest $(PYTEST_FLAGS) -m real_data
 
 lint: install
 	$(BIN)/ruff check .

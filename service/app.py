@@ -32,11 +32,12 @@ from engine.defaults import EPS_PER_VOXEL, RHO, TILE_SIZE_VOX
 from engine.grid import unpack_keys
 from engine.meshing import Mesh
 from storage import Store, StoreError
+from storage.importers import encode_png
 from storage.meshes import mesh_bytes
 
 from .jobs import Dispatcher, new_id
 from .settings import Settings
-from .uploads import UploadError, decode_scan, encode_png_rgb
+from .uploads import UploadError, decode_scan
 
 __all__ = ["create_app", "create_token", "hash_token"]
 
@@ -505,7 +506,7 @@ def _slice_png(store: Store, scene_id: str, grid: GridSpec, axis: int, at: float
     keys = keys[keys[:, axis] == index // T]
     others = [a for a in range(3) if a != axis]
     if len(keys) == 0:
-        return encode_png_rgb(np.full((1, 1, 3), 128, np.uint8))
+        return encode_png(np.full((1, 1, 3), 128, np.uint8))
     lo = keys[:, others].min(axis=0) * T
     hi = (keys[:, others].max(axis=0) + 1) * T
     if (hi - lo).prod() > 16_000_000:
@@ -523,4 +524,4 @@ def _slice_png(store: Store, scene_id: str, grid: GridSpec, axis: int, at: float
     occ = L >= 0
     img[free] = (np.stack([60, 120, 255]) * (0.4 + 0.6 * strength[free, None])).astype(np.uint8)
     img[occ] = (np.stack([230, 40, 40]) * (0.4 + 0.6 * strength[occ, None])).astype(np.uint8)
-    return encode_png_rgb(np.ascontiguousarray(np.flip(img.transpose(1, 0, 2), axis=0)))
+    return encode_png(np.ascontiguousarray(np.flip(img.transpose(1, 0, 2), axis=0)))

@@ -44,6 +44,7 @@ from ._cliutil import (
     positive_int,
     write_outputs,
 )
+from ._import_cli import add_import_command, read_source_for_fuse
 from ._progress import ProgressBar
 from ._serve_cli import add_serve_commands
 from ._store_cli import add_store_commands, fuse_into_store, workers_option
@@ -124,7 +125,8 @@ def _bounds_from_data(scans: Iterable[Scan], noise: NoiseModel, voxel_size: floa
 
 
 def _cmd_fuse(args: argparse.Namespace) -> int:
-    dataset = open_dataset(args.dataset)
+    # --format KIND: a source in a foreign format, read into memory (service/_import_cli.py)
+    dataset = read_source_for_fuse(args) if args.format else open_dataset(args.dataset)
     noise = _noise_from_args(args)
     params = FusionParams(
         noise=noise,
@@ -301,6 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
     fuse.set_defaults(func=_cmd_fuse)
     add_store_commands(sub)
     add_serve_commands(sub)
+    add_import_command(sub)
     return parser
 
 

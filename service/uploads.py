@@ -14,7 +14,6 @@ import json
 import math
 import struct
 import tempfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,8 @@ import numpy as np
 from engine import InvalidInputError, NoiseModel, Scan, sensor_from_dict
 from storage import DatasetError
 from storage.dataset import read_scan_file
+from storage.importers import decode_png
+from storage.importers.errors import SourceError
 
 __all__ = ["UploadError", "UploadedScan", "decode_scan"]
 
@@ -146,7 +147,7 @@ def _npz_scan(data: bytes, meta: dict[str, Any]) -> Scan:
     return scan
 
 
-# --- PNG (16-bit or 8-bit greyscale, non-interlaced) ------------------------------------------
+# --- PNG depth images (storage.importers' codec) ------------------------------------------------
 
 
 def _png_depth(data: bytes, meta: dict[str, Any]) -> np.ndarray:
@@ -155,106 +156,13 @@ def _png_depth(data: bytes, meta: dict[str, Any]) -> np.ndarray:
         raise UploadError("meta.depth_scale: a PNG depth image needs depth_scale (metres per unit)")
     if not (math.isfinite(scale) and scale > 0):
         raise UploadError(f"meta.depth_scale: must be a positive number, got {scale}")
-    values = decode_png_grey(data)
+    try:
+        values = decode_png(data, "range")
+    except SourceError as exc:
+        raise UploadError(str(exc)) from None
     depth = values.astype(np.float32) * np.float32(scale)
     depth[values == 0] = np.nan
     return depth
-
-
-def decode_png_grey(data: bytes) -> np.ndarray:
-    """Pixels of a greyscale PNG (8 or 16 bits, no interlace) as uint8/uint16 (H, W)."""
-    pos = 8
-    width = height = depth = 0
-    idat = []
-    while pos + 8 <= len(data):
-        length, kind = struct.unpack(">I4s", data[pos : pos + 8])
-        chunk = data[pos + 8 : pos + 8 + length]
-        if len(chunk) != length:
-            raise UploadError("range: truncated PNG")
-        if kind == b"IHDR":
-            width, height, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", chunk)
-            if colour != 0 or depth not in (8, 16) or interlace != 0:
-                raise UploadError(
-                    "range: PNG must be greyscale, 8 or 16 bits per pixel, not interlaced"
-                )
-            if not (0 < width <= MAX_SIDE and 0 < height <= MAX_SIDE):
-                raise UploadError(f"range: PNG of {width} x {height} pixels is not sensible")
-        elif kind == b"IDAT":
-            idat.append(chunk)
-        elif kind == b"IEND":
-            break
-        pos += 12 + length
-    if not width or not idat:
-        raise UploadError("range: PNG without image data")
-    bpp = depth // 8
-    stride = width * bpp
-    try:
-        raw = zlib.decompressobj().decompress(b"".join(idat), height * (stride + 1))
-    except zlib.error as exc:
-        raise UploadError(f"range: damaged PNG data ({exc})") from None
-    if len(raw) < height * (stride + 1):
-        raise UploadError("range: truncated PNG data")
-    rows = np.frombuffer(raw[: height * (stride + 1)], np.uint8).reshape(height, stride + 1)
-    out = np.zeros((height, stride), np.uint8)
-    prev = np.zeros(stride, np.int32)
-    for y in range(height):
-        kind, line = rows[y, 0], rows[y, 1:].astype(np.int32)
-        if kind == 0:
-            cur = line
-        elif kind == 2:
-            cur = (line + prev) & 0xFF
-        else:  # sub, average, paeth: sequential in x
-            cur = np.zeros(stride, np.int32)
-            for x in range(stride):
-                a = int(cur[x - bpp]) if x >= bpp else 0
-                b = int(prev[x])
-                c = int(prev[x - bpp]) if x >= bpp else 0
-                if kind == 1:
-                    pred = a
-                elif kind == 3:
-                    pred = (a + b) // 2
-                elif kind == 4:
-                    p = a + b - c
-                    pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
-                    pred = a if pa <= pb and pa <= pc else (b if pb <= pc else c)
-                else:
-                    raise UploadError(f"range: bad PNG filter type {kind}")
-                cur[x] = (int(line[x]) + pred) & 0xFF
-        out[y] = cur
-        prev = cur
-    if depth == 16:
-        return out.view(">u2").astype(np.uint16).reshape(height, width)
-    return out.reshape(height, width)
-
-
-def encode_png_grey16(values: np.ndarray) -> bytes:
-    """A 16-bit greyscale PNG (for tests and clients)."""
-    values = np.ascontiguousarray(values, ">u2")
-    h, w = values.shape
-    raw = b"".join(b"\x00" + values[y].tobytes() for y in range(h))
-    return _png(w, h, 16, 0, raw)
-
-
-def encode_png_rgb(rgb: np.ndarray) -> bytes:
-    """An 8-bit RGB PNG of an (H, W, 3) uint8 array."""
-    rgb = np.ascontiguousarray(rgb, np.uint8)
-    h, w, _ = rgb.shape
-    raw = b"".join(b"\x00" + rgb[y].tobytes() for y in range(h))
-    return _png(w, h, 8, 2, raw)
-
-
-def _png(w: int, h: int, depth: int, colour: int, raw: bytes) -> bytes:
-    def chunk(kind: bytes, body: bytes) -> bytes:
-        return (
-            struct.pack(">I", len(body)) + kind + body
-            + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
-        )  # fmt: skip
-
-    ihdr = struct.pack(">IIBBBBB", w, h, depth, colour, 0, 0, 0)
-    return (
-        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw, 6))
-        + chunk(b"IEND", b"")
-    )  # fmt: skip
 
 
 # --- TIFF (float32, uncompressed, one sample per pixel) ---------------------------------------

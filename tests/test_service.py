@@ -19,8 +19,8 @@ import trimesh
 
 from engine.synth import make_dataset
 from service.cli import main
-from service.uploads import encode_png_grey16
 from storage import write_dataset
+from storage.importers import encode_png
 
 ROOT = Path(__file__).resolve().parents[1]
 VOXEL = 0.04
@@ -215,7 +215,7 @@ def test_other_range_formats_are_accepted(client, object_data):
     sid = client.post("/v1/scenes", json=_scene_body(object_data)).json()["id"]
     _, scan = object_data.scans[0]
     depth = np.where(np.isfinite(scan.range_m), scan.range_m, 0.0)
-    png = encode_png_grey16(np.round(depth / 0.0002).astype(np.uint16))
+    png = encode_png(np.round(depth / 0.0002).astype(np.uint16))
     r = _upload(client, sid, png, _meta(scan, depth_scale=0.0002), filename="d.png")
     assert r.status_code == 202, r.text
     buf = io.BytesIO()
@@ -343,7 +343,7 @@ def _bad_cases(scan):
         ),
         "png without scale": (
             {
-                "range": ("d.png", encode_png_grey16(np.ones((480, 640), np.uint16))),
+                "range": ("d.png", encode_png(np.ones((480, 640), np.uint16))),
                 "meta": (None, good_meta),
             },
             400,
