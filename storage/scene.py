@@ -33,7 +33,7 @@ from engine import (
     ScanNotFoundError,
     prepare_scan,
 )
-from engine.fusion import integrate_seen, integrate_tiles
+from engine.fusion import integrate_seen
 from engine.grid import pack_keys, unique_keys, unpack_keys
 from engine.meshing import Mesh, TileMeshes, mesh_region, mesh_tiles, stitch, tiles_to_mesh
 from engine.tiling import FREE, OUT, classify_tiles, reach_radius, tiles_touched
@@ -352,7 +352,7 @@ class TileCache:
         self.tiles = tiles
         self.T = tile_size
         self.tile_bytes = tile_size**3 * 8
-        self.capacity = max(8, (budget_bytes // self.tile_bytes) * 3 // 4)
+        self.capacity = _cache_tiles(budget_bytes / 2**20, tile_size)
         self._data: OrderedDict[int, np.ndarray] = OrderedDict()
         self._dirty: set[int] = set()
         self.written: set[int] = set()  # packed keys written since the last checkpoint
@@ -438,7 +438,8 @@ class TileUnit:
 
     ``scans`` lists ``(scan_id, rows, free)``: the rows of ``keys`` the archived scan
     updates and whether it sees each as free space throughout; ``new`` marks tiles that
-    do not exist on disk yet.
+    start from unknown instead of their stored chunk (created, or rebuilt after a crash);
+    ``sign`` is 1 to add the scans, -1 to subtract them (exact removal).
     """
 
     group_path: str
@@ -448,6 +449,7 @@ class TileUnit:
     new: np.ndarray
     scans: list[tuple[str, np.ndarray, np.ndarray]]
     cache_mb: float
+    sign: int = 1
 
 
 @dataclass(frozen=True)
@@ -457,7 +459,7 @@ class UnitResult:
 
 
 def integrate_unit(unit: TileUnit) -> UnitResult:
-    """Add the unit's scans to its tiles and write them back (fsynced).
+    """Add (or subtract) the unit's scans to its tiles and write them back (fsynced).
 
     Tiles are the outer loop: each tile is read once and written once, whatever the number
     of scans (they are loaded from the archive first: a group of scans, a few MB). The
@@ -481,12 +483,13 @@ def integrate_unit(unit: TileUnit) -> UnitResult:
     for start in range(0, n, cache.batch):
         part = np.arange(start, min(n, start + cache.batch))
         data = cache.fetch(unit.keys[part], unit.new[part])
+        data[unit.new[part]] = 0  # a rebuilt tile starts from unknown, whatever is on disk
         for k, prepared in enumerate(scans):
             seen = np.flatnonzero(status[k, part] >= 0)
             if len(seen) == 0:
                 continue
             count = integrate_seen(
-                prepared, grid, unit.keys[part], data, seen, status[k, part[seen]] == 1, 1
+                prepared, grid, unit.keys[part], data, seen, status[k, part[seen]] == 1, unit.sign
             )
             hit[k, part] = count > 0
             updates += int(count.sum())
@@ -538,6 +541,11 @@ class SceneReport:
     tiles_written: int = 0
     tiles_created: int = 0
     tiles_deleted: int = 0
+
+
+def _cache_tiles(cache_mb: float, tile_size: int) -> int:
+    """Tiles a cache of ``cache_mb`` holds (see :class:`TileCache`)."""
+    return max(8, int(cache_mb * 2**20) // (tile_size**3 * 8) * 3 // 4)
 
 
 def _with_lower_neighbours(packed: np.ndarray) -> np.ndarray:
@@ -640,7 +648,6 @@ class Scene:
         self.tiles = ZarrTiles.open(self.group_path)
         self.archive = ScanArchive(self.group_path)
         self.cache_mb = cache_mb
-        self.cache = TileCache(self.tiles, grid.tile_size_vox, int(cache_mb * 2**20))
         self.runner: Runner = runner if runner is not None else InProcess()
         self._prepared: OrderedDict[str, PreparedScan] = OrderedDict()
         self.recovered = self._recover()
@@ -739,40 +746,10 @@ class Scene:
         )
         with self.catalog.transaction():
             self.catalog.journal_add(self.scene_id, packed[written])
-        # the work: tiles partitioned among the runner's workers, each a plain function
-        # of (scene location, tiles, scans); every tile has exactly one writer
-        self.cache.flush()
-        self.cache.clear()
-        n_parts = max(1, min(self.runner.workers, len(written)))
-        part_of = _partition(keys[written], n_parts)
-        units = []
-        for p in range(n_parts):
-            mine = written[part_of == p]
-            local = np.full(len(keys), -1, np.int64)
-            local[mine] = np.arange(len(mine))
-            scans = []
-            for scan_id, (rows, free) in plans.items():
-                sel = local[rows] >= 0
-                if sel.any():
-                    scans.append((scan_id, local[rows[sel]], free[sel]))
-            units.append(
-                TileUnit(
-                    group_path=str(self.group_path),
-                    grid=self.grid.to_dict(),
-                    params=self.params.to_dict(),
-                    keys=keys[mine],
-                    new=is_new[mine],
-                    scans=scans,
-                    cache_mb=self.cache_mb / n_parts,
-                )
-            )
-        informed_tiles: dict[str, list[np.ndarray]] = {}
-        for unit, result in zip(units, self.runner.map(integrate_unit, units), strict=True):
-            for scan_id, local_rows in result.informed.items():
-                informed_tiles.setdefault(scan_id, []).append(pack_keys(unit.keys[local_rows]))
-            report.voxel_updates += result.voxel_updates
+        informed, updates = self._run_units(keys[written], is_new[written], plans, written)
+        report.voxel_updates += updates
         self._checkpoint(
-            informed={s: np.concatenate(v) for s, v in informed_tiles.items()},
+            informed=informed,
             owned={s: pack_keys(t) for s, t in touched.items()},
             fused=new_ids,
             changed=packed[written],
@@ -788,37 +765,56 @@ class Scene:
         seen = status != OUT
         return candidates[seen], status[seen] == FREE
 
-    def _apply(
+    def _run_units(
         self,
-        scan_id: str,
         keys: np.ndarray,
-        rows: np.ndarray,
-        free: np.ndarray,
-        is_new: np.ndarray,
-        sign: int,
-    ) -> tuple[np.ndarray, int]:
-        """Add (or subtract) a scan to tiles through the cache, in batches; returns the rows
-        it informs and the number of voxel updates."""
-        prepared = self._load(scan_id)
-        hits = []
-        updates = 0
-        batch = self.cache.batch
-        for start in range(0, len(rows), batch):
-            part = rows[start : start + batch]
-            data = self.cache.fetch(keys[part], is_new[part])
-            informed = integrate_seen(
-                prepared,
-                self.grid,
-                keys[part],
-                data,
-                np.arange(len(part)),
-                free[start : start + batch],
-                sign,
+        new: np.ndarray,
+        plans: dict[str, tuple[np.ndarray, np.ndarray]],
+        rows_of_keys: np.ndarray | None = None,
+        sign: int = 1,
+    ) -> tuple[dict[str, np.ndarray], int]:
+        """Split tiles among the runner's workers (by key: one writer per tile) and run a
+        :class:`TileUnit` each. ``plans[scan] = (rows, free)`` index ``keys`` (or, with
+        ``rows_of_keys``, the array those rows are taken from). Returns the packed keys
+        each scan informs and the number of voxel updates."""
+        if rows_of_keys is not None:  # plans index a larger array: map to positions in keys
+            position = np.full(int(rows_of_keys.max()) + 1 if len(rows_of_keys) else 0, -1)
+            position[rows_of_keys] = np.arange(len(rows_of_keys))
+            plans = {
+                s: (position[rows][position[rows] >= 0], free[position[rows] >= 0])
+                for s, (rows, free) in plans.items()
+            }
+        n_parts = max(1, min(self.runner.workers, len(keys)))
+        part_of = _partition(keys, n_parts)
+        units = []
+        for p in range(n_parts):
+            mine = np.flatnonzero(part_of == p)
+            local = np.full(len(keys), -1, np.int64)
+            local[mine] = np.arange(len(mine))
+            scans = []
+            for scan_id, (rows, free) in plans.items():
+                sel = local[rows] >= 0
+                if sel.any():
+                    scans.append((scan_id, local[rows[sel]], free[sel]))
+            units.append(
+                TileUnit(
+                    group_path=str(self.group_path),
+                    grid=self.grid.to_dict(),
+                    params=self.params.to_dict(),
+                    keys=keys[mine],
+                    new=new[mine],
+                    scans=scans,
+                    cache_mb=self.cache_mb / n_parts,
+                    sign=sign,
+                )
             )
-            self.cache.store(keys[part], data)
-            hits.append(part[informed > 0])
-            updates += int(informed.sum())
-        return np.concatenate([np.zeros(0, np.int64), *hits]), updates
+        informed: dict[str, list[np.ndarray]] = {}
+        updates = 0
+        for unit, result in zip(units, self.runner.map(integrate_unit, units), strict=True):
+            for scan_id, local_rows in result.informed.items():
+                informed.setdefault(scan_id, []).append(pack_keys(unit.keys[local_rows]))
+            updates += result.voxel_updates
+        return {s: np.concatenate(v) for s, v in informed.items()}, updates
 
     def _checkpoint(
         self,
@@ -829,15 +825,12 @@ class Scene:
         deleted: np.ndarray | None = None,
         removed: str | None = None,
     ) -> None:
-        """Write back and fsync the chunks, then commit the catalog in one transaction."""
-        if deleted is not None and len(deleted):
-            self.cache.drop(unpack_keys(deleted))
-        written = self.cache.flush()
+        """Delete (durably) the tiles that went away, then commit the catalog in one
+        transaction. The units have written and fsynced their tiles already."""
+        none = np.zeros(0, np.int64)
         if deleted is not None and len(deleted):
             self.tiles.delete(unpack_keys(deleted))
-        touched_files = np.union1d(written, deleted if deleted is not None else written[:0])
-        if len(touched_files):
-            self.tiles.fsync(unpack_keys(touched_files))
+            self.tiles.fsync(unpack_keys(deleted))
         with self.catalog.transaction():
             for scan_id in sorted(set(informed) | set(owned)):
                 hit = informed.get(scan_id, np.zeros(0, np.int64))
@@ -850,8 +843,7 @@ class Scene:
                 self.catalog.delete_scan(self.scene_id, removed)
             self.catalog.set_scan_state(self.scene_id, list(fused), "fused")
             bump = np.union1d(
-                changed if changed is not None else written[:0],
-                deleted if deleted is not None else written[:0],
+                changed if changed is not None else none, deleted if deleted is not None else none
             )
             if len(bump):
                 self.catalog.bump_epochs(self.scene_id, _with_lower_neighbours(bump))
@@ -883,11 +875,8 @@ class Scene:
             self.catalog.journal_add(self.scene_id, tiles)
         keep = tiles[~alone]
         keys = unpack_keys(keep)
-        status = classify_tiles(self._load(scan_id), self.grid, keys, halo=1)
-        seen = np.flatnonzero(status != OUT)
-        _, updates = self._apply(
-            scan_id, keys, seen, status[seen] == FREE, np.zeros(len(keys), np.bool_), sign=-1
-        )
+        plan = self._plan(scan_id, keys, np.arange(len(keys)))
+        _, updates = self._run_units(keys, np.zeros(len(keys), np.bool_), {scan_id: plan}, sign=-1)
         self._checkpoint(informed={}, owned={}, changed=keep, deleted=tiles[alone], removed=scan_id)
         self.archive.delete(scan_id)
         return SceneReport(
@@ -915,20 +904,16 @@ class Scene:
         owned = np.array([any(own for _, own in info[t]) for t in tiles.tolist()], np.bool_)
         gone = tiles[~owned]
         live = tiles[owned]
-        self.cache.clear()
-        batch = self.cache.batch
-        for start in range(0, len(live), batch):
-            part = live[start : start + batch]
-            keys = unpack_keys(part)
-            data = np.zeros((len(part), *(self.grid.tile_size_vox,) * 3), np.int64)
-            by_scan: dict[str, list[int]] = {}
-            for n, t in enumerate(part.tolist()):
-                for scan_id, _ in info[t]:
-                    by_scan.setdefault(scan_id, []).append(n)
-            for scan_id in sorted(by_scan):
-                rows = np.array(by_scan[scan_id], np.int64)
-                integrate_tiles(self._load(scan_id), self.grid, keys, data, rows)
-            self.tiles.write(keys, data)
+        keys = unpack_keys(live)
+        by_scan: dict[str, list[int]] = {}
+        for n, t in enumerate(live.tolist()):
+            for scan_id, _ in info[t]:
+                by_scan.setdefault(scan_id, []).append(n)
+        plans = {
+            scan_id: self._plan(scan_id, keys, np.array(rows, np.int64))
+            for scan_id, rows in sorted(by_scan.items())
+        }
+        self._run_units(keys, np.ones(len(keys), np.bool_), plans)
         if len(gone):
             self.tiles.delete(unpack_keys(gone))
         if len(tiles):
@@ -976,7 +961,7 @@ class Scene:
                 _decode_tile_meshes(keys[hit], [cached[p][1] for p in packed[hit].tolist()])
             )
         todo = np.flatnonzero(~hit)
-        batch = max(1, self.cache.batch // 8)
+        batch = max(1, _cache_tiles(self.cache_mb, self.grid.tile_size_vox) // 24)
         for start in range(0, len(todo), batch):
             rows = todo[start : start + batch]
             tm = mesh_tiles(
