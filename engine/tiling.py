@@ -38,12 +38,13 @@ from ._sampling import COARSE, QUAD_BLOCK, quad_columns, quad_ranges
 from .certainty import SHAPE_LINEAR
 from .defaults import BAND_MARGIN_VOX
 from .grid import GridSpec, unique_keys
-from .scans import PreparedScan
+from .scans import FusionParams, PreparedScan, Scan
 
 __all__ = [
     "FREE",
     "OUT",
     "PARTIAL",
+    "bounding_sphere",
     "classify_tiles",
     "reach_radius",
     "tiles_in_view",
@@ -747,19 +748,45 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
 
 def reach_radius(scan: PreparedScan) -> float:
     """Distance from the sensor origin beyond which the scan informs nothing (inf if unbounded)."""
-    p = scan.params
-    if scan.kind == _k.SPHERICAL:
-        return scan.reach_max
-    if scan.kind == _k.CYLINDRICAL:
+    return _sphere_radius(scan.kind, scan.params, scan.reach_max)
+
+
+def bounding_sphere(scan: Scan, params: FusionParams) -> tuple[np.ndarray, float]:
+    """A sphere (centre, radius) outside which the scan informs nothing, in NumPy alone.
+
+    Looser than :func:`reach_radius` (it takes the farthest range of any pixel, which bounds
+    every filtered and interpolated range) but needs no kernel: the service records it when
+    a scan is uploaded.
+    """
+    rng = scan.range_m
+    finite = rng[np.isfinite(rng)]
+    r_max = float(finite.max()) if finite.size else -math.inf
+    if params.no_return == "free" and bool(np.isposinf(rng).any()):
+        r_max = max(r_max, scan.sensor.max_range)
+    origin = np.array(scan.T_W_S[:3, 3], np.float64)
+    if not math.isfinite(r_max):
+        return origin, 0.0
+    noise = scan.noise if scan.noise is not None else params.noise
+    eps = noise.eps_m + noise.eps_per_m * r_max
+    falloff = noise.falloff_m if noise.falloff_m is not None else eps
+    kind, sensor_params, _ = scan.sensor.kernel_args()
+    return origin, _sphere_radius(kind, sensor_params, r_max + eps + falloff)
+
+
+def _sphere_radius(kind: int, p: np.ndarray, reach: float) -> float:
+    """The largest distance from the origin of a point at ``reach`` in the sensor's range."""
+    if kind == _k.SPHERICAL:
+        return reach
+    if kind == _k.CYLINDRICAL:
         ray = p[_k.P_RADIAL] == 0.0 and p[_k.P_LINEAR] == 0.0
-        return scan.reach_max if ray else math.inf
-    if scan.kind == _k.PINHOLE:
+        return reach if ray else math.inf
+    if kind == _k.PINHOLE:
         if p[_k.P_Z_CONV] == 0.0:
-            return scan.reach_max
+            return reach
         # |p| = z * |(xn, yn, 1)|, largest at an image corner
         xn = max(abs(-p[_k.P_CX]), abs(p[_k.P_W] - 1 - p[_k.P_CX])) / p[_k.P_FX]
         yn = max(abs(-p[_k.P_CY]), abs(p[_k.P_H] - 1 - p[_k.P_CY])) / p[_k.P_FY]
-        return scan.reach_max * math.sqrt(1.0 + xn * xn + yn * yn)
+        return reach * math.sqrt(1.0 + xn * xn + yn * yn)
     return math.inf
 
 

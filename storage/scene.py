@@ -36,7 +36,7 @@ from engine import (
 from engine.fusion import integrate_seen
 from engine.grid import pack_keys, unique_keys, unpack_keys
 from engine.meshing import Mesh, TileMeshes, mesh_region, mesh_tiles, stitch, tiles_to_mesh
-from engine.tiling import FREE, OUT, classify_tiles, reach_radius, tiles_touched
+from engine.tiling import FREE, OUT, bounding_sphere, classify_tiles, tiles_touched
 from engine.volume import dense_logodds
 
 from .archive import ScanArchive
@@ -196,22 +196,14 @@ class Store:
 
         Needs no writer lock: archive entries are written once under their own name.
         """
-        grid, params = self.scene_spec(scene_id)
-        del grid
+        _, params = self.scene_spec(scene_id)
         if self.catalog.scan(scene_id, scan_id) is not None:
             raise SceneConflictError(f"scan {scan_id!r} is already in the scene")
-        prepared = prepare_scan(scan, params)  # validates against the scene's parameters
+        origin, radius = bounding_sphere(scan, params)  # NumPy only: no kernel in a request
         archive = ScanArchive(self.scene_path(scene_id) / "scene.zarr")
         checksum = archive.put(scan_id, scan, name)
         try:
-            self.catalog.add_scan(
-                scene_id,
-                scan_id,
-                name,
-                prepared.origin_W.tolist(),
-                reach_radius(prepared),
-                checksum,
-            )
+            self.catalog.add_scan(scene_id, scan_id, name, origin.tolist(), radius, checksum)
         except BaseException:
             archive.delete(scan_id)
             raise

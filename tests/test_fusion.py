@@ -20,6 +20,7 @@ from engine import (
     Volume,
     decode_count,
     decode_logodds,
+    prepare_scan,
 )
 from engine.defaults import LOGIT_SCALE
 from tests import reference, scenes
@@ -293,3 +294,18 @@ def test_volume_errors() -> None:
     keys_before = volume.tile_keys()
     assert np.array_equal(keys_before, volume.tile_keys())
     assert volume.scan_ids == [scans[0][0]]
+
+
+@pytest.mark.parametrize("name", list(scenes.SENSORS))
+@pytest.mark.parametrize("filter_name", ["none", "median3", "mean5"])
+def test_bounding_sphere_holds_everything_the_scan_informs(name, filter_name):
+    """The kernel-free sphere the service records is never tighter than the scan's reach."""
+    from engine.tiling import bounding_sphere, reach_radius
+
+    for no_return in ("free", "invalid"):
+        params = _params(filter=filter_name, no_return=no_return)
+        for _, scan in scenes.scans(name, 2):
+            origin, radius = bounding_sphere(scan, params)
+            prepared = prepare_scan(scan, params)
+            np.testing.assert_array_equal(origin, prepared.origin_W)
+            assert radius >= reach_radius(prepared) or not np.isfinite(prepared.reach_max)
