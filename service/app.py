@@ -249,7 +249,15 @@ def create_app(settings: Settings) -> FastAPI:
     def job_out(job: Any) -> dict[str, Any]:
         return dict(job.to_dict())
 
-    # --- health and metrics -------------------------------------------------------------------
+    # --- the web page, health and metrics ------------------------------------------------------
+    page = (Path(__file__).parent / "static" / "index.html").read_bytes()
+
+    @app.get("/", include_in_schema=False)
+    def index() -> Response:
+        """Scenes and jobs with progress, and the latest mesh of a scene (the page asks for
+        a token, or takes ``?token=``; every call it makes carries it)."""
+        return Response(page, media_type="text/html; charset=utf-8")
+
     @app.get("/healthz")
     def healthz() -> dict[str, str]:
         return {"status": "ok"}
@@ -430,6 +438,14 @@ def create_app(settings: Settings) -> FastAPI:
         job = store().catalog.create_job(new_id(), who, scene_id, "reconstruct", payload)
         dispatcher.wake()
         return {"job": {"id": job.id}}
+
+    @app.get("/v1/jobs")
+    def list_jobs(
+        who: Tenant, limit: Annotated[int, Query(ge=1, le=1000)] = 50
+    ) -> list[dict[str, Any]]:
+        """The tenant's most recent jobs, newest first."""
+        jobs = store().catalog.jobs(tenant=who)
+        return [job_out(j) for j in reversed(jobs[-limit:])]
 
     @app.get("/v1/jobs/{job_id}")
     def get_job(job_id: str, who: Tenant) -> dict[str, Any]:
