@@ -12,12 +12,10 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import multiprocessing
-import os
 import threading
 import time
 import uuid
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +23,8 @@ import numpy as np
 
 from storage import Store
 from storage.catalog import JobRow
+
+from .runners import spawn_pool
 
 __all__ = ["Dispatcher", "new_id", "run_job"]
 
@@ -35,14 +35,6 @@ KINDS = ("integrate", "remove", "reconstruct")
 
 def new_id() -> str:
     return uuid.uuid4().hex[:16]
-
-
-def _init_worker(threads: int, cache_dir: str | None) -> None:
-    if cache_dir:
-        os.environ["NUMBA_CACHE_DIR"] = cache_dir
-    import numba
-
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
 
 
 def _mesh_path(store: Store, scene_id: str, job_id: str) -> Path:
@@ -128,13 +120,7 @@ class Dispatcher:
         self.workers = workers
         self.cache_mb = cache_mb
         self.poll_s = poll_s
-        cores = os.cpu_count() or 1
-        self._pool = ProcessPoolExecutor(
-            max_workers=workers,
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=_init_worker,
-            initargs=(max(1, cores // workers), os.environ.get("NUMBA_CACHE_DIR")),
-        )
+        self._pool = spawn_pool(workers)
         self._running: dict[Future[dict[str, Any]], JobRow] = {}
         self._stop = threading.Event()
         self._wake = threading.Event()

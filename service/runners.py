@@ -15,7 +15,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 from storage.scene import TileUnit, UnitResult
 
-__all__ = ["ProcessRunner"]
+__all__ = ["ProcessRunner", "spawn_pool"]
 
 
 def _init_worker(threads: int, cache_dir: str | None) -> None:
@@ -26,6 +26,18 @@ def _init_worker(threads: int, cache_dir: str | None) -> None:
     numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
 
 
+def spawn_pool(workers: int, cores: int | None = None) -> ProcessPoolExecutor:
+    """``workers`` spawned processes, each with ``cores // workers`` numba threads and this
+    process's numba cache."""
+    cores = cores or os.cpu_count() or 1
+    return ProcessPoolExecutor(
+        max_workers=workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_init_worker,
+        initargs=(max(1, cores // workers), os.environ.get("NUMBA_CACHE_DIR")),
+    )
+
+
 class ProcessRunner:
     """A pool of ``workers`` spawned processes; numba threads divided among them."""
 
@@ -33,13 +45,7 @@ class ProcessRunner:
         if workers < 1:
             raise ValueError(f"workers must be at least 1, got {workers}")
         self.workers = workers
-        cores = cores or os.cpu_count() or 1
-        self._pool = ProcessPoolExecutor(
-            max_workers=workers,
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=_init_worker,
-            initargs=(max(1, cores // workers), os.environ.get("NUMBA_CACHE_DIR")),
-        )
+        self._pool = spawn_pool(workers, cores)
 
     def map(self, fn: Callable[[TileUnit], UnitResult], units: list[TileUnit]) -> list[UnitResult]:
         return list(self._pool.map(fn, units))
