@@ -14,7 +14,9 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from . import _sensor_kernels as _k
 from ._sensor_kernels import P_H, P_W, in_image, wraps
+from .certainty import contribution
 
 #: Quads per side of a block of the maps used by the tile tests.
 QUAD_BLOCK = 8
@@ -144,3 +146,19 @@ def coarse_blocks(
         np.ascontiguousarray(n.min(axis=(1, 3))),
         np.ascontiguousarray(v.all(axis=(1, 3))),
     )
+
+
+@njit(cache=True, inline="always")
+def point_contribution(
+    kind, shape, params, table, rng, max_disc, eps0, eps1, rho, falloff, q_rho, px, py, pz
+):
+    """One scan's quantised ``logit(C)`` at a point of the sensor frame (METHOD §1), and
+    whether the point is informed: projection, bilinear range, certainty. The fusion and
+    the edge-refinement kernels both evaluate scans through this one function."""
+    u, v, d = _k.project_point(kind, params, table, px, py, pz)
+    if u != u:
+        return np.int64(0), False
+    r, ok = sample_range(kind, params, rng, u, v, max_disc)
+    if not ok:
+        return np.int64(0), False
+    return contribution(d - r, r, eps0, eps1, rho, falloff, shape, q_rho)

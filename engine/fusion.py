@@ -22,9 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
-from . import _sensor_kernels as _k
-from ._sampling import sample_range
-from .certainty import contribution, pack
+from ._sampling import point_contribution
+from .certainty import pack
 from .errors import InvalidInputError, ScanNotFoundError
 from .grid import GridSpec, pack_keys, unique_keys
 from .meshing import Mesh, extract_mesh
@@ -95,20 +94,10 @@ def _integrate_kernel(kind: int, shape: int):
                     bz = M[2, 0] * x + M[2, 1] * y + c[2]
                     for cc in range(T):
                         z = ((k0 + cc) + 0.5) * h
-                        u, v, d = _k.project_point(
-                            kind,
-                            params,
-                            table,
-                            bx + M[0, 2] * z,
-                            by + M[1, 2] * z,
-                            bz + M[2, 2] * z,
-                        )
-                        if u != u:
-                            continue
-                        r, ok = sample_range(kind, params, rng, u, v, max_disc)
-                        if not ok:
-                            continue
-                        q, inf = contribution(d - r, r, eps0, eps1, rho, falloff, shape, q_rho)
+                        q, inf = point_contribution(
+                            kind, shape, params, table, rng, max_disc, eps0, eps1, rho,
+                            falloff, q_rho, bx + M[0, 2] * z, by + M[1, 2] * z, bz + M[2, 2] * z,
+                        )  # fmt: skip
                         if inf:
                             data[row, a, b, cc] += sign * pack(q)
                             count += 1

@@ -29,10 +29,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from . import _sensor_kernels as _k
 from ._mc_tables import EDGE_AXIS, EDGE_CORNER, TRI_COUNT, TRI_TABLE
-from ._sampling import sample_range
-from .certainty import contribution, logit, pack, quantise
+from ._sampling import point_contribution
+from .certainty import logit, pack, quantise
 from .defaults import COUNT_BITS, REFINE_SAMPLES
 from .errors import InvalidGridError
 from .grid import Bounds, GridSpec, pack_keys, unique_keys
@@ -356,15 +355,10 @@ def _sample_kernel(kind: int, shape: int):
             dy = M[1, axis] * step
             dz = M[2, axis] * step
             for s in range(1, n_samples):
-                u, vv, d = _k.project_point(
-                    kind, params, table, p0x + s * dx, p0y + s * dy, p0z + s * dz
-                )
-                if u != u:
-                    continue
-                r, ok = sample_range(kind, params, rng, u, vv, max_disc)
-                if not ok:
-                    continue
-                q, inf = contribution(d - r, r, eps0, eps1, rho, falloff, shape, q_rho)
+                q, inf = point_contribution(
+                    kind, shape, params, table, rng, max_disc, eps0, eps1, rho, falloff,
+                    q_rho, p0x + s * dx, p0y + s * dy, p0z + s * dz,
+                )  # fmt: skip
                 if inf:
                     acc[v, s - 1] += pack(q)
 
