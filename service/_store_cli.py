@@ -32,7 +32,7 @@ from ._cliutil import (
 from ._progress import ProgressBar
 from .runners import ProcessRunner
 
-__all__ = ["add_store_commands", "fuse_into_store", "workers_option"]
+__all__ = ["add_store_commands", "cache_option", "fuse_into_store", "workers_option"]
 
 
 def _announce_recovery(scene: Scene) -> None:
@@ -201,7 +201,7 @@ def add_store_commands(sub: argparse._SubParsersAction) -> None:
         metavar="sensor.json",
         help="sensor of scans that hold none (default: sensor.json beside or above them)",
     )
-    _cache_option(add)
+    cache_option(add)
     workers_option(add)
     add.add_argument("--quiet", action="store_true", help="no progress bar")
     add.set_defaults(func=_cmd_add)
@@ -209,7 +209,7 @@ def add_store_commands(sub: argparse._SubParsersAction) -> None:
     remove = sub.add_parser("remove", help="remove a scan from a store (exactly)")
     remove.add_argument("store", type=Path, metavar="DIR")
     remove.add_argument("scan_id", metavar="SCAN_ID")
-    _cache_option(remove)
+    cache_option(remove)
     remove.set_defaults(func=_cmd_remove)
 
     extract = sub.add_parser("extract", help="write a store's mesh and/or dense grid")
@@ -223,7 +223,7 @@ def add_store_commands(sub: argparse._SubParsersAction) -> None:
         metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
         help="only this box (world metres)",
     )
-    _cache_option(extract)
+    cache_option(extract)
     extract.set_defaults(func=_cmd_extract)
 
     info = sub.add_parser("info", help="describe a store: scans, tiles, bytes, version")
@@ -243,11 +243,11 @@ def workers_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _cache_option(parser: argparse.ArgumentParser) -> None:
+def cache_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--cache-mb",
         type=positive_float,
         default=CACHE_MB,
         metavar="MB",
-        help=f"memory budget of the tile cache (default {CACHE_MB})",
+        help=f"memory budget of the tile cache of a persistent store (default {CACHE_MB})",
     )

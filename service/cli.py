@@ -32,7 +32,7 @@ from engine import (
 from engine.certainty import SHAPES
 from engine.defaults import EPS_PER_VOXEL, RHO, TILE_SIZE_VOX
 from storage import DatasetError, open_dataset, write_dataset
-from storage.scene import CACHE_MB, StoreError
+from storage.scene import StoreError
 
 from ._cliutil import (
     CommandError,
@@ -47,7 +47,7 @@ from ._cliutil import (
 from ._import_cli import add_import_command, read_source_for_fuse
 from ._progress import ProgressBar
 from ._serve_cli import add_serve_commands
-from ._store_cli import add_store_commands, fuse_into_store, workers_option
+from ._store_cli import add_store_commands, cache_option, fuse_into_store, workers_option
 
 __all__ = ["main"]
 
@@ -291,13 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="fuse into a persistent store (created if missing; re-running resumes and adds "
         "the scans it does not hold yet)",
     )
-    fuse.add_argument(
-        "--cache-mb",
-        type=positive_float,
-        default=CACHE_MB,
-        metavar="MB",
-        help=f"with --store: memory budget of the tile cache (default {CACHE_MB})",
-    )
+    cache_option(fuse)
     workers_option(fuse)
     fuse.add_argument("--quiet", action="store_true", help="no progress bar")
     fuse.set_defaults(func=_cmd_fuse)
