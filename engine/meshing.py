@@ -40,6 +40,7 @@ from .tiling import FREE, OUT, classify_tiles
 from .volume import TileStore
 
 __all__ = [
+    "HALO_TILES",
     "Mesh",
     "TileMeshes",
     "extract_mesh",
@@ -462,7 +463,9 @@ def mesh_region(grid: GridSpec, bounds_m: Sequence[float] | None) -> tuple[np.nd
     return np.full(3, -_FAR, np.int64), np.full(3, _FAR, np.int64)
 
 
-_NEIGHBOURS = np.array([[d & 1, (d >> 1) & 1, (d >> 2) & 1] for d in range(8)], np.int64)
+#: A tile and the 7 tiles its cubes' one-voxel halo reads: offset ``d`` is
+#: ``(d & 1, d >> 1 & 1, d >> 2 & 1)``. The storage invalidates cached tile meshes with it.
+HALO_TILES = np.array([[d & 1, (d >> 1) & 1, (d >> 2) & 1] for d in range(8)], np.int64)
 
 
 def tiles_to_mesh(
@@ -480,7 +483,7 @@ def tiles_to_mesh(
         return keys
     # closed: tiles next to an existing tile, and tiles on the region's boundary
     near = unique_keys(
-        np.concatenate([np.zeros((0, 3), np.int64)] + [existing - d for d in _NEIGHBOURS])
+        np.concatenate([np.zeros((0, 3), np.int64)] + [existing - d for d in HALO_TILES])
     )
     near = near[np.all((near >= t_lo) & (near <= t_hi), axis=1)]
     n_tiles = int(np.prod(t_hi - t_lo + 1))
@@ -504,7 +507,7 @@ def _neighbour_rows(mesh_keys: np.ndarray, data_keys: np.ndarray) -> np.ndarray:
     if len(data_keys) == 0:
         return nb
     packed = pack_keys(data_keys)
-    for d, off in enumerate(_NEIGHBOURS):
+    for d, off in enumerate(HALO_TILES):
         want = pack_keys(mesh_keys + off)
         pos = np.minimum(np.searchsorted(packed, want), len(packed) - 1)
         nb[:, d] = np.where(packed[pos] == want, pos, -1)
@@ -553,7 +556,7 @@ def mesh_tiles(
         keys = tiles_to_mesh(existing, grid, lo, hi)
     keys = unique_keys(np.asarray(keys, np.int64).reshape(-1, 3))
     wanted = unique_keys(
-        np.concatenate([np.zeros((0, 3), np.int64)] + [keys + d for d in _NEIGHBOURS])
+        np.concatenate([np.zeros((0, 3), np.int64)] + [keys + d for d in HALO_TILES])
     )
     data_keys = (
         wanted[np.isin(pack_keys(wanted), pack_keys(existing))] if len(existing) else wanted[:0]

@@ -35,7 +35,15 @@ from engine import (
 )
 from engine.fusion import integrate_seen
 from engine.grid import pack_keys, unique_keys, unpack_keys
-from engine.meshing import Mesh, TileMeshes, mesh_region, mesh_tiles, stitch, tiles_to_mesh
+from engine.meshing import (
+    HALO_TILES,
+    Mesh,
+    TileMeshes,
+    mesh_region,
+    mesh_tiles,
+    stitch,
+    tiles_to_mesh,
+)
 from engine.tiling import FREE, OUT, bounding_sphere, classify_tiles, tiles_touched
 from engine.volume import dense_logodds
 
@@ -543,8 +551,7 @@ def _cache_tiles(cache_mb: float, tile_size: int) -> int:
 def _with_lower_neighbours(packed: np.ndarray) -> np.ndarray:
     """The tiles and the 7 tiles whose one-voxel halo they are (meshing reads upwards)."""
     keys = unpack_keys(packed)
-    offsets = [np.array([d & 1, (d >> 1) & 1, (d >> 2) & 1]) for d in range(8)]
-    return np.unique(pack_keys(np.concatenate([keys - off for off in offsets])))
+    return np.unique(pack_keys(np.concatenate([keys - off for off in HALO_TILES])))
 
 
 class _TileReader:
