@@ -127,6 +127,43 @@ def quad_blocks(kind, params, rng, eps0, eps1, falloff, max_disc, reach, near, v
             valid[bv, bu] = all_valid
 
 
+#: Slack (metres, plus the same relative to the range) by which :func:`quad_bounds` widens its
+#: bounds, so that float32 storage and rounding never make them claim a voxel wrongly.
+_BOUND_SLACK = 1e-6
+
+
+@njit(cache=True, parallel=True)
+def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out):
+    """Per pixel quad, two distances that settle most points without interpolating
+    (``out`` float32 (H - 1, quad_columns, 2)):
+
+    * ``out[..., 0]``: below it, a point projecting into the quad is in free space in front
+      of the band (``d - r < -eps(r)`` for every range ``r`` between the quad's corners);
+    * ``out[..., 1]``: beyond it, the quad informs nothing (``d - r > eps(r) + f(r)``).
+
+    Both ends increase with ``r`` (``0 <= eps1 < 1``), so the extremes are at the smallest
+    and the largest corner. An invalid quad informs nothing: ``(-inf, -inf)``. Each bound is moved
+    outwards by ``_BOUND_SLACK`` (absolute and relative) so that it errs on the safe side.
+    """
+    nqv = rng.shape[0] - 1
+    nqu = quad_columns(kind, params)
+    for qv in prange(nqv):
+        for qu in range(nqu):
+            r00, r01, r10, r11, ok = quad_ranges(rng, qu, qv, max_disc)
+            if not ok:
+                out[qv, qu, 0] = -np.inf
+                out[qv, qu, 1] = -np.inf
+                continue
+            lo = min(min(r00, r01), min(r10, r11))
+            hi = max(max(r00, r01), max(r10, r11))
+            free = (1.0 - eps1) * lo - eps0  # eps1 < 1: increasing in r
+            eps = eps0 + eps1 * hi
+            f = falloff if falloff > 0.0 else eps
+            behind = hi + eps + f
+            out[qv, qu, 0] = free - _BOUND_SLACK * (1.0 + abs(free))
+            out[qv, qu, 1] = behind + _BOUND_SLACK * (1.0 + abs(behind))
+
+
 def coarse_blocks(
     reach: np.ndarray, near: np.ndarray, valid: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

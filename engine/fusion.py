@@ -16,14 +16,16 @@ integrate) with the same result.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit, prange
 
-from ._sampling import point_contribution
-from .certainty import pack
+from . import _sensor_kernels as _k
+from ._sampling import quad_bounds, quad_columns, quad_origin, sample_range
+from .certainty import SHAPE_LINEAR, contribution, pack
 from .errors import InvalidInputError, ScanNotFoundError
 from .grid import GridSpec, pack_keys, unique_keys
 from .meshing import Mesh, extract_mesh
@@ -34,6 +36,42 @@ from .volume import DenseGrid, MemoryTileStore, TileStore, dense_logodds
 __all__ = ["IntegrationReport", "Volume", "integrate_seen", "integrate_tiles"]
 
 Progress = Callable[[int, int], None]
+
+
+@njit(cache=True, inline="always")
+def _clip(A, B, lo, hi):
+    """Narrow ``[lo, hi]`` to the ``t`` with ``A + t * B >= 0``."""
+    if B > 0.0:
+        lo = max(lo, -A / B)
+    elif B < 0.0:
+        hi = min(hi, -A / B)
+    elif A < 0.0:
+        hi = -1.0
+    return lo, hi
+
+
+@njit(cache=True, inline="always")
+def _line_span(kind, params, px, py, pz, dx, dy, dz, T):
+    """Voxels ``c0 <= c < c1`` of a line of ``T`` voxels at sensor-frame points
+    ``p + c * d`` that can project into the image: a pinhole camera's image is a pyramid, so
+    the test is linear in ``c`` (widened by a voxel on each side against rounding; the
+    kernel still tests each voxel). Other sensors: the whole line."""
+    if kind != _k.PINHOLE:
+        return 0, T
+    fx = params[_k.P_FX]
+    fy = params[_k.P_FY]
+    cx = params[_k.P_CX]
+    cy = params[_k.P_CY]
+    wx = params[_k.P_W] - 1.0 - cx
+    wy = params[_k.P_H] - 1.0 - cy
+    lo, hi = _clip(pz, dz, 0.0, T - 1.0)
+    lo, hi = _clip(fx * px + cx * pz, fx * dx + cx * dz, lo, hi)
+    lo, hi = _clip(wx * pz - fx * px, wx * dz - fx * dx, lo, hi)
+    lo, hi = _clip(fy * py + cy * pz, fy * dy + cy * dz, lo, hi)
+    lo, hi = _clip(wy * pz - fy * py, wy * dz - fy * dy, lo, hi)
+    if not lo <= hi:
+        return 0, 0
+    return max(int(math.floor(lo)) - 1, 0), min(int(math.ceil(hi)) + 2, T)
 
 
 @functools.cache
@@ -59,6 +97,7 @@ def _integrate_kernel(kind: int, shape: int):
         params,
         table,
         rng,
+        bounds,
         eps0,
         eps1,
         rho,
@@ -71,20 +110,24 @@ def _integrate_kernel(kind: int, shape: int):
         # ``informed[row]`` receives the number of voxels of each tile the scan informs.
         # A tile with ``free[n]`` is known to be free space throughout (classify_tiles):
         # every voxel receives logit(rho), exactly what the voxel loop would add.
+        # Within a tile, each line of voxels along z is first clipped to the image
+        # (_line_span); a voxel whose quad's bounds (quad_bounds) settle it as free space
+        # or as behind the band is not interpolated.
+        free_value = sign * pack(q_rho)
         for n in prange(rows.shape[0]):
             row = rows[n]
             if free[n]:
-                value = sign * pack(q_rho)
                 for a in range(T):
                     for b in range(T):
                         for cc in range(T):
-                            data[row, a, b, cc] += value
+                            data[row, a, b, cc] += free_value
                 informed[row] = T * T * T
                 continue
             count = 0
             i0 = keys[row, 0] * T
             j0 = keys[row, 1] * T
             k0 = keys[row, 2] * T
+            z0 = (k0 + 0.5) * h
             for a in range(T):
                 x = ((i0 + a) + 0.5) * h
                 for b in range(T):
@@ -92,12 +135,29 @@ def _integrate_kernel(kind: int, shape: int):
                     bx = M[0, 0] * x + M[0, 1] * y + c[0]
                     by = M[1, 0] * x + M[1, 1] * y + c[1]
                     bz = M[2, 0] * x + M[2, 1] * y + c[2]
-                    for cc in range(T):
+                    c0, c1 = _line_span(
+                        kind, params, bx + M[0, 2] * z0, by + M[1, 2] * z0,
+                        bz + M[2, 2] * z0, M[0, 2] * h, M[1, 2] * h, M[2, 2] * h, T,
+                    )  # fmt: skip
+                    for cc in range(c0, c1):
                         z = ((k0 + cc) + 0.5) * h
-                        q, inf = point_contribution(
-                            kind, shape, params, table, rng, max_disc, eps0, eps1, rho,
-                            falloff, q_rho, bx + M[0, 2] * z, by + M[1, 2] * z, bz + M[2, 2] * z,
-                        )  # fmt: skip
+                        px = bx + M[0, 2] * z
+                        py = by + M[1, 2] * z
+                        pz = bz + M[2, 2] * z
+                        u, v, d = _k.project_point(kind, params, table, px, py, pz)
+                        if u != u or not _k.in_image(kind, params, u, v):
+                            continue
+                        qu, qv = quad_origin(kind, params, u, v)
+                        if shape == SHAPE_LINEAR and d < bounds[qv, qu, 0]:
+                            data[row, a, b, cc] += free_value
+                            count += 1
+                            continue
+                        if d > bounds[qv, qu, 1]:
+                            continue
+                        r, ok = sample_range(kind, params, rng, u, v, max_disc)
+                        if not ok:
+                            continue
+                        q, inf = contribution(d - r, r, eps0, eps1, rho, falloff, shape, q_rho)
                         if inf:
                             data[row, a, b, cc] += sign * pack(q)
                             count += 1
@@ -169,6 +229,7 @@ def integrate_seen(
             scan.params,
             scan.table,
             scan.range_m,
+            quad_bounds_of(scan),
             scan.eps0,
             scan.eps1,
             scan.rho,
@@ -178,6 +239,16 @@ def integrate_seen(
             informed,
         )
     return informed
+
+
+def quad_bounds_of(scan: PreparedScan) -> np.ndarray:
+    """The scan's per-quad free-space and reach bounds (:func:`engine._sampling.quad_bounds`)."""
+    rng = scan.range_m
+    out = np.empty((rng.shape[0] - 1, quad_columns(scan.kind, scan.params), 2), np.float32)
+    quad_bounds(
+        scan.kind, scan.params, rng, scan.eps0, scan.eps1, scan.falloff, scan.max_disc, out
+    )
+    return out
 
 
 @dataclass

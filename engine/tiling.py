@@ -15,11 +15,15 @@ volume does not depend on the order in which scans arrive):
   is *in view* unless it is ``OUT``.
 * :func:`tiles_touched` enumerates the tiles a scan *allocates*. Mapping mode:
   the tiles that the band ``[-eps - margin, eps + falloff]`` around the
-  measured surface touches. Blocks of pixel quads are covered by the box of
-  their band points when that box spans at most two tiles per axis, quad by
-  quad otherwise (quads wider than half a tile are subdivided). No-return
-  pixels carve free space but have no surface, so their quads allocate
-  nothing. Closed mode: the tiles of the region of interest that are in view.
+  measured surface touches: the tiles of the box of each valid pixel quad's
+  band-end points. A pyramid of nodes (2 x 2 quads per level up) keeps, per
+  node, a 4 x 4 x 4 tile mask of what its quads touch, so a walk from the top
+  emits each region's tiles once instead of once per quad. A quad whose box
+  spans more than four tiles on an axis (the band across a depth step, or seen
+  edge-on) is covered by pieces: halved while wider than half a tile, then cut
+  into slabs of its range interval. No-return pixels carve free space but
+  have no surface, so their quads allocate nothing. Closed mode: the tiles of
+  the region of interest that are in view.
 
 Kernels are compiled per sensor kind (the kind is a closure constant), so the
 branches of the other models cost nothing. Tile keys are int64 (n, 3).
@@ -60,8 +64,16 @@ FREE = 2
 _MIN_PIECE = 1.0 / 64.0
 #: Depth of the subdivision stack (two entries per halving).
 _STACK = 32
-#: Quads per side of the blocks that allocation covers with one box when it can.
-_BAND_BLOCK = 4
+#: Tiles per axis of the masks of the allocation pyramid (4 x 4 x 4 tiles: 64 bits).
+_SPAN = 4
+#: ``lo_x`` of a node of the allocation pyramid whose band spans more than ``_SPAN`` tiles.
+_BIG_LO = np.iinfo(np.int64).min
+#: Most slabs one narrow piece of a quad's band is cut into (a bound on the work per quad).
+_MAX_SLABS = 4096
+#: Entries of the cache of recently emitted tile keys in allocation (a power of two).
+_SEEN = 256
+#: The allocation pyramid is merged up to at most this many top nodes (the parallel walk).
+_TOP_NODES = 256
 #: Slack, in pixels and metres, added to the conservative tests against rounding.
 _PIXEL_SLACK = 1e-3
 _DIST_SLACK = 1e-9
@@ -420,48 +432,57 @@ def tiles_in_view(scan: PreparedScan, grid: GridSpec, keys: np.ndarray) -> np.nd
 # allocation: mapping mode
 
 
+@njit(cache=True, inline="always")
+def _first_tile(x, h, T):
+    """Tile of the voxel centre at or below coordinate ``x`` (less than a voxel of slack)."""
+    return int(math.floor(x / h - 0.5 + _CENTRE_SLACK)) // T
+
+
+@njit(cache=True, inline="always")
+def _last_tile(x, h, T):
+    """Tile of the voxel centre at or above coordinate ``x`` (less than a voxel of slack)."""
+    return int(math.ceil(x / h - 0.5 - _CENTRE_SLACK)) // T
+
+
 @njit(cache=True)
 def _tile_range(box, h, T):
     """Tile index ranges (inclusive) of the voxel centres in a box (x0, y0, z0, x1, y1, z1)
     widened to the next voxel centre outside it on each side (less than a voxel of slack)."""
     return (
-        int(math.floor(box[0] / h - 0.5 + _CENTRE_SLACK)) // T,
-        int(math.floor(box[1] / h - 0.5 + _CENTRE_SLACK)) // T,
-        int(math.floor(box[2] / h - 0.5 + _CENTRE_SLACK)) // T,
-        int(math.ceil(box[3] / h - 0.5 - _CENTRE_SLACK)) // T,
-        int(math.ceil(box[4] / h - 0.5 - _CENTRE_SLACK)) // T,
-        int(math.ceil(box[5] / h - 0.5 - _CENTRE_SLACK)) // T,
+        _first_tile(box[0], h, T),
+        _first_tile(box[1], h, T),
+        _first_tile(box[2], h, T),
+        _last_tile(box[3], h, T),
+        _last_tile(box[4], h, T),
+        _last_tile(box[5], h, T),
     )
 
 
-@njit(cache=True)
-def _emit(rng6, keys, count, fill, prev):
-    """Emit the tiles of a key range, skipping a range equal to the previous one (``prev``,
-    six ints, updated): neighbouring quads mostly repeat it."""
-    same = True
-    for k in range(6):
-        if rng6[k] != prev[k]:
-            same = False
-        prev[k] = rng6[k]
-    if same:
+@njit(cache=True, inline="always")
+def _emit_key(a, b, c, keys, count, fill, seen):
+    """Emit tile ``(a, b, c)`` unless ``seen`` (a small direct-mapped cache of keys emitted
+    lately, ``(_SEEN, 3)``) holds it: neighbouring pieces of the band mostly repeat tiles."""
+    slot = ((a * 73856093) ^ (b * 19349663) ^ (c * 83492791)) & (seen.shape[0] - 1)
+    if seen[slot, 0] == a and seen[slot, 1] == b and seen[slot, 2] == c:
         return count
+    seen[slot, 0] = a
+    seen[slot, 1] = b
+    seen[slot, 2] = c
+    if fill:
+        keys[count, 0] = a
+        keys[count, 1] = b
+        keys[count, 2] = c
+    return count + 1
+
+
+@njit(cache=True)
+def _emit(rng6, keys, count, fill, seen):
+    """Emit the tiles of a key range (see :func:`_emit_key`)."""
     for a in range(rng6[0], rng6[3] + 1):
         for b in range(rng6[1], rng6[4] + 1):
             for c in range(rng6[2], rng6[5] + 1):
-                if fill:
-                    keys[count, 0] = a
-                    keys[count, 1] = b
-                    keys[count, 2] = c
-                count += 1
+                count = _emit_key(a, b, c, keys, count, fill, seen)
     return count
-
-
-@njit(cache=True, inline="always")
-def _grow(box, pts, v, u):
-    for e in range(2):
-        for ax in range(3):
-            box[ax] = min(box[ax], pts[v, u, e, ax])
-            box[3 + ax] = max(box[3 + ax], pts[v, u, e, ax])
 
 
 @njit(cache=True, inline="always")
@@ -469,6 +490,104 @@ def _reset(box):
     for ax in range(3):
         box[ax] = np.inf
         box[3 + ax] = -np.inf
+
+
+def _overflow_masks() -> np.ndarray:
+    """``[axis, o]``: the bits of a 4 x 4 x 4 tile mask that leave it when shifted by ``o``
+    tiles along ``axis`` (bit ``16 x + 4 y + z`` is tile ``(x, y, z)``)."""
+    out = np.zeros((3, _SPAN + 1), np.int64)
+    for axis in range(3):
+        for o in range(_SPAN + 1):
+            bits = 0
+            for x in range(_SPAN):
+                for y in range(_SPAN):
+                    for z in range(_SPAN):
+                        if (x, y, z)[axis] >= _SPAN - o:
+                            bits |= 1 << (16 * x + 4 * y + z)
+            out[axis, o] = np.uint64(bits).view(np.int64)
+    return out
+
+
+_OVERFLOW = _overflow_masks()
+
+
+@njit(cache=True, inline="always")
+def _box_mask(nx, ny, nz):
+    """The mask of the tiles ``[0, nx) x [0, ny) x [0, nz)`` (each at most ``_SPAN``)."""
+    mask = np.int64(0)
+    for x in range(nx):
+        for y in range(ny):
+            for z in range(nz):
+                mask |= np.int64(1) << (16 * x + 4 * y + z)
+    return mask
+
+
+@njit(cache=True, parallel=True)
+def _merge_level(child, ch, cw, parent, ph, pw):
+    """One level up the node pyramid of :func:`tiles_touched`: each parent node covers 2 x 2
+    child nodes. A node is ``(lo_x, lo_y, lo_z, mask)``: ``mask`` has bit ``16 x + 4 y + z``
+    set when the band touches tile ``lo + (x, y, z)`` (0: no band); ``lo_x == _BIG_LO`` when
+    the band spans more than ``_SPAN`` tiles on some axis."""
+    none = np.iinfo(np.int64).max
+    for i in prange(ph):
+        for j in range(pw):
+            lo0 = none
+            lo1 = none
+            lo2 = none
+            big = False
+            for di in range(2):
+                for dj in range(2):
+                    ci = 2 * i + di
+                    cj = 2 * j + dj
+                    if ci < ch and cj < cw:
+                        node = child[ci * cw + cj]
+                        if node[0] == _BIG_LO:
+                            big = True
+                        elif node[3] != 0:
+                            lo0 = min(lo0, node[0])
+                            lo1 = min(lo1, node[1])
+                            lo2 = min(lo2, node[2])
+            out = parent[i * pw + j]
+            mask = np.int64(0)
+            if not big and lo0 != none:
+                for di in range(2):
+                    for dj in range(2):
+                        ci = 2 * i + di
+                        cj = 2 * j + dj
+                        if ci >= ch or cj >= cw:
+                            continue
+                        node = child[ci * cw + cj]
+                        if node[3] == 0:
+                            continue
+                        ox = node[0] - lo0
+                        oy = node[1] - lo1
+                        oz = node[2] - lo2
+                        if (
+                            ox > _SPAN
+                            or oy > _SPAN
+                            or oz > _SPAN
+                            or node[3] & _OVERFLOW[0, ox]
+                            or node[3] & _OVERFLOW[1, oy]
+                            or node[3] & _OVERFLOW[2, oz]
+                        ):
+                            big = True
+                        else:
+                            mask |= node[3] << (16 * ox + 4 * oy + oz)
+            out[0] = _BIG_LO if big else lo0
+            out[1] = lo1
+            out[2] = lo2
+            out[3] = -1 if big else mask
+
+
+@njit(cache=True, inline="always")
+def _emit_mask(node, keys, count, fill, seen):
+    for bit in range(64):
+        if node[3] & (np.int64(1) << bit):
+            a = node[0] + (bit >> 4)
+            b = node[1] + ((bit >> 2) & 3)
+            c = node[2] + (bit & 3)
+            count = _emit_key(a, b, c, keys, count, fill, seen)
+    return count
 
 
 @functools.cache
@@ -482,76 +601,134 @@ def _band_kernels(kind: int):
             out[row, a] = R[a, 0] * x + R[a, 1] * y + R[a, 2] * z + t[a]
 
     @njit(cache=True, parallel=True)
-    def band_points(rng, params, table, R, t, eps0, eps1, falloff, margin, out):
-        # world points of every pixel at both ends of its band, out (H, W, 2, 3)
+    def pixel_ranges(rng, params, table, R, t, eps0, eps1, falloff, margin, h, T, out):
+        # tiles (lo_x, lo_y, lo_z, hi_x, hi_y, hi_z) of the box of the two band-end points of
+        # every valid pixel, out (H, W, 6); a quad's box is the union of its corners' boxes
         H, W = rng.shape
         for v in prange(H):
+            ends = np.empty((2, 3))
             for u in range(W):
                 r = rng[v, u]
                 if math.isnan(r):
                     continue
                 eps = eps0 + eps1 * r
                 f = falloff if falloff > 0.0 else eps
-                uf = float(u)
-                vf = float(v)
-                world(R, t, params, table, uf, vf, max(r - eps - margin, 0.0), out[v, u], 0)
-                world(R, t, params, table, uf, vf, r + eps + f, out[v, u], 1)
+                world(R, t, params, table, float(u), float(v), max(r - eps - margin, 0.0), ends, 0)
+                world(R, t, params, table, float(u), float(v), r + eps + f, ends, 1)
+                for ax in range(3):
+                    out[v, u, ax] = _first_tile(min(ends[0, ax], ends[1, ax]), h, T)
+                    out[v, u, 3 + ax] = _last_tile(max(ends[0, ax], ends[1, ax]), h, T)
+
+    @njit(cache=True, parallel=True)
+    def quad_nodes(rng, ranges, params, max_disc, nodes):
+        # level 0 of the node pyramid (see _merge_level): the tiles of the box of each valid
+        # quad's band-end points; a quad spanning more than _SPAN tiles on an axis is big
+        # (covered piece by piece by quad_tiles during the walk)
+        nqv = rng.shape[0] - 1
+        nqu = quad_columns(kind, params)
+        W = rng.shape[1]
+        for qv in prange(nqv):
+            for qu in range(nqu):
+                node = nodes[qv * nqu + qu]
+                node[0] = 0
+                node[3] = 0
+                if not quad_ranges(rng, qu, qv, max_disc)[4]:
+                    continue
+                qu1 = qu + 1 if qu + 1 < W else 0
+                a = ranges[qv, qu]
+                b = ranges[qv, qu1]
+                c = ranges[qv + 1, qu]
+                d = ranges[qv + 1, qu1]
+                i0 = min(min(a[0], b[0]), min(c[0], d[0]))
+                j0 = min(min(a[1], b[1]), min(c[1], d[1]))
+                k0 = min(min(a[2], b[2]), min(c[2], d[2]))
+                i1 = max(max(a[3], b[3]), max(c[3], d[3]))
+                j1 = max(max(a[4], b[4]), max(c[4], d[4]))
+                k1 = max(max(a[5], b[5]), max(c[5], d[5]))
+                if i1 - i0 >= _SPAN or j1 - j0 >= _SPAN or k1 - k0 >= _SPAN:
+                    node[0] = _BIG_LO
+                    node[3] = -1
+                    continue
+                node[0] = i0
+                node[1] = j0
+                node[2] = k0
+                node[3] = _box_mask(i1 - i0 + 1, j1 - j0 + 1, k1 - k0 + 1)
 
     @njit(cache=True)
     def node_points(
-        rng, pts, qu, qv, a0, a1, b0, b1, params, table, R, t, eps0, eps1, falloff, margin, corners
+        rng, qu, qv, a0, a1, b0, b1, params, table, R, t, eps0, eps1, falloff, margin, corners
     ):
-        # band-end points of the corners of the sub-quad [a0, a1] x [b0, b1] of quad (qu, qv):
-        # rows 0..3 at the near end, 4..7 at the far end; row k has du = k & 1, dv = k >> 1
-        if a0 == 0.0 and a1 == 1.0 and b0 == 0.0 and b1 == 1.0:
-            qu1 = qu + 1 if qu + 1 < rng.shape[1] else 0
-            for e in range(2):
-                for ax in range(3):
-                    corners[4 * e + 0, ax] = pts[qv, qu, e, ax]
-                    corners[4 * e + 1, ax] = pts[qv, qu1, e, ax]
-                    corners[4 * e + 2, ax] = pts[qv + 1, qu, e, ax]
-                    corners[4 * e + 3, ax] = pts[qv + 1, qu1, e, ax]
-            return
+        # Band-end points of the corners of the sub-quad [a0, a1] x [b0, b1] of quad
+        # (qu, qv): rows 0..3 at the near end, 4..7 at the far end; row k has du = k & 1,
+        # dv = k >> 1. Returns the band's range interval over the sub-quad: both ends are
+        # monotone in the bilinear range, so they are extreme at corners.
         qu1 = qu + 1 if qu + 1 < rng.shape[1] else 0
         r00 = rng[qv, qu]
         r01 = rng[qv, qu1]
         r10 = rng[qv + 1, qu]
         r11 = rng[qv + 1, qu1]
+        lo = np.inf
+        hi = -np.inf
         for k in range(4):
             fu = a1 if k & 1 else a0
             fv = b1 if k >> 1 else b0
             r = (1.0 - fv) * ((1.0 - fu) * r00 + fu * r01) + fv * ((1.0 - fu) * r10 + fu * r11)
             eps = eps0 + eps1 * r
             f = falloff if falloff > 0.0 else eps
-            world(R, t, params, table, qu + fu, qv + fv, max(r - eps - margin, 0.0), corners, k)
-            world(R, t, params, table, qu + fu, qv + fv, r + eps + f, corners, 4 + k)
+            near = max(r - eps - margin, 0.0)
+            far = r + eps + f
+            lo = min(lo, near)
+            hi = max(hi, far)
+            world(R, t, params, table, qu + fu, qv + fv, near, corners, k)
+            world(R, t, params, table, qu + fu, qv + fv, far, corners, 4 + k)
+        return lo, hi
+
+    @njit(cache=True)
+    def slab_tiles(
+        qu, qv, a0, a1, b0, b1, lo, hi, params, table, R, t, h, T, fill, keys, count, seen,
+        corners, box,
+    ):  # fmt: skip
+        # Cover a narrow piece of the band (its sub-quad is at most half a tile across) that
+        # is long in range: cut the frustum of the sub-quad between ranges lo and hi into
+        # slabs about half a tile long, and emit the tiles of each slab's box.
+        for k in range(4):
+            fu = a1 if k & 1 else a0
+            fv = b1 if k >> 1 else b0
+            world(R, t, params, table, qu + fu, qv + fv, lo, corners, k)
+            world(R, t, params, table, qu + fu, qv + fv, hi, corners, 4 + k)
+        length = 0.0
+        for k in range(4):
+            d2 = 0.0
+            for ax in range(3):
+                d2 += (corners[4 + k, ax] - corners[k, ax]) ** 2
+            length = max(length, math.sqrt(d2))
+        n = min(max(int(math.ceil(length / (0.5 * T * h))), 1), _MAX_SLABS)
+        for s in range(1, n + 1):
+            d1 = lo + (hi - lo) * s / n
+            for k in range(4):
+                fu = a1 if k & 1 else a0
+                fv = b1 if k >> 1 else b0
+                world(R, t, params, table, qu + fu, qv + fv, d1, corners, 4 + k)
+            _reset(box)
+            for k in range(8):
+                for ax in range(3):
+                    box[ax] = min(box[ax], corners[k, ax])
+                    box[3 + ax] = max(box[3 + ax], corners[k, ax])
+            count = _emit(_tile_range(box, h, T), keys, count, fill, seen)
+            for k in range(4):
+                for ax in range(3):
+                    corners[k, ax] = corners[4 + k, ax]
+        return count
 
     @njit(cache=True)
     def quad_tiles(
-        rng,
-        pts,
-        qu,
-        qv,
-        params,
-        table,
-        R,
-        t,
-        eps0,
-        eps1,
-        falloff,
-        margin,
-        h,
-        T,
-        fill,
-        keys,
-        count,
-        prev,
-        corners,
-        box,
-        stack,
-    ):
-        # Cover the band of one valid quad with boxes spanning at most two tiles per axis,
-        # halving the quad (across its wider side) where its box is larger.
+        rng, qu, qv, params, table, R, t, eps0, eps1, falloff, margin, h, T, fill, keys, count,
+        seen, corners, box, stack,
+    ):  # fmt: skip
+        # Cover the band of one valid quad whose box spans more than two tiles on an axis:
+        # halve the quad across its wider side while the piece is wider than half a tile,
+        # then cover each narrow piece by slabs of its range interval (the band across a
+        # depth step, or seen edge-on, is long and thin).
         stack[0, 0] = 0.0
         stack[0, 1] = 1.0
         stack[0, 2] = 0.0
@@ -563,59 +740,48 @@ def _band_kernels(kind: int):
             a1 = stack[top, 1]
             b0 = stack[top, 2]
             b1 = stack[top, 3]
-            node_points(
-                rng,
-                pts,
-                qu,
-                qv,
-                a0,
-                a1,
-                b0,
-                b1,
-                params,
-                table,
-                R,
-                t,
-                eps0,
-                eps1,
-                falloff,
-                margin,
+            lo, hi = node_points(
+                rng, qu, qv, a0, a1, b0, b1, params, table, R, t, eps0, eps1, falloff, margin,
                 corners,
-            )
+            )  # fmt: skip
             _reset(box)
             for k in range(8):
                 for ax in range(3):
                     box[ax] = min(box[ax], corners[k, ax])
                     box[3 + ax] = max(box[3 + ax], corners[k, ax])
             span = _tile_range(box, h, T)
-            small = span[3] - span[0] <= 1 and span[4] - span[1] <= 1 and span[5] - span[2] <= 1
+            if span[3] - span[0] <= 1 and span[4] - span[1] <= 1 and span[5] - span[2] <= 1:
+                count = _emit(span, keys, count, fill, seen)
+                continue
+            # the piece's width across its frustum at the far end of its range interval
+            world(R, t, params, table, qu + a0, qv + b0, hi, corners, 0)
+            world(R, t, params, table, qu + a1, qv + b0, hi, corners, 1)
+            world(R, t, params, table, qu + a0, qv + b1, hi, corners, 2)
             wide_u = 0.0
             wide_v = 0.0
             for ax in range(3):
-                wide_u += (corners[5, ax] - corners[4, ax]) ** 2
-                wide_v += (corners[6, ax] - corners[4, ax]) ** 2
-            # the band's depth cannot shrink by halving the quad: stop once it is narrow
-            narrow = max(wide_u, wide_v) <= (0.5 * T * h) ** 2
-            if (
-                small
-                or narrow
-                or a1 - a0 < _MIN_PIECE
-                or b1 - b0 < _MIN_PIECE
-                or top + 2 > stack.shape[0]
-            ):
-                count = _emit(span, keys, count, fill, prev)
+                wide_u += (corners[1, ax] - corners[0, ax]) ** 2
+                wide_v += (corners[2, ax] - corners[0, ax]) ** 2
+            if max(wide_u, wide_v) <= (0.5 * T * h) ** 2:
+                count = slab_tiles(
+                    qu, qv, a0, a1, b0, b1, lo, hi, params, table, R, t, h, T, fill, keys,
+                    count, seen, corners, box,
+                )  # fmt: skip
+                continue
+            if a1 - a0 < _MIN_PIECE or b1 - b0 < _MIN_PIECE or top + 2 > stack.shape[0]:
+                count = _emit(span, keys, count, fill, seen)
                 continue
             for half in range(2):
+                stack[top, 0] = a0
+                stack[top, 1] = a1
+                stack[top, 2] = b0
+                stack[top, 3] = b1
                 if wide_u >= wide_v:
                     mid = 0.5 * (a0 + a1)
                     stack[top, 0] = a0 if half == 0 else mid
                     stack[top, 1] = mid if half == 0 else a1
-                    stack[top, 2] = b0
-                    stack[top, 3] = b1
                 else:
                     mid = 0.5 * (b0 + b1)
-                    stack[top, 0] = a0
-                    stack[top, 1] = a1
                     stack[top, 2] = b0 if half == 0 else mid
                     stack[top, 3] = mid if half == 0 else b1
                 top += 1
@@ -623,88 +789,55 @@ def _band_kernels(kind: int):
 
     @njit(cache=True, parallel=True)
     def band_tiles(
-        rng,
-        pts,
-        params,
-        table,
-        R,
-        t,
-        eps0,
-        eps1,
-        falloff,
-        max_disc,
-        margin,
-        h,
-        T,
-        fill,
-        offsets,
-        keys,
-    ):
-        nqv = rng.shape[0] - 1
-        nqu = quad_columns(kind, params)
-        W = rng.shape[1]
-        nbv = -(-nqv // _BAND_BLOCK)
-        nbu = -(-nqu // _BAND_BLOCK)
-        for bv in prange(nbv):
-            count = offsets[bv]
-            prev = np.full(6, np.iinfo(np.int64).min, np.int64)
+        rng, params, table, R, t, eps0, eps1, falloff, margin, h, T, nodes, level_off,
+        level_h, level_w, fill, offsets, keys,
+    ):  # fmt: skip
+        # Walk the node pyramid from each top node: a masked node emits its tiles, a big one
+        # is opened (a big quad is covered by quad_tiles). Count first (fill False: the
+        # number of keys of each top node into offsets), then fill from those offsets.
+        top = level_off.shape[0] - 1
+        tw = level_w[top]
+        n_top = level_h[top] * tw
+        for n in prange(n_top):
+            count = offsets[n]
+            seen = np.full((_SEEN, 3), np.iinfo(np.int64).min, np.int64)
             corners = np.empty((8, 3))
             box = np.empty(6)
-            stack = np.empty((_STACK, 4))
-            qv0 = bv * _BAND_BLOCK
-            qv1 = min(nqv, qv0 + _BAND_BLOCK)
-            for bu in range(nbu):
-                qu0 = bu * _BAND_BLOCK
-                qu1 = min(nqu, qu0 + _BAND_BLOCK)
-                # box of the band points of every valid quad of the block
-                _reset(box)
-                n_valid = 0
-                for qv in range(qv0, qv1):
-                    for qu in range(qu0, qu1):
-                        if not quad_ranges(rng, qu, qv, max_disc)[4]:
-                            continue
-                        n_valid += 1
-                        u1 = qu + 1 if qu + 1 < W else 0
-                        _grow(box, pts, qv, qu)
-                        _grow(box, pts, qv, u1)
-                        _grow(box, pts, qv + 1, qu)
-                        _grow(box, pts, qv + 1, u1)
-                if n_valid == 0:
+            quad_stack = np.empty((_STACK, 4))
+            stack = np.empty((4 * top + 4, 3), np.int64)
+            stack[0, 0] = top
+            stack[0, 1] = n // tw
+            stack[0, 2] = n % tw
+            depth = 1
+            while depth > 0:
+                depth -= 1
+                lvl = stack[depth, 0]
+                i = stack[depth, 1]
+                j = stack[depth, 2]
+                node = nodes[level_off[lvl] + i * level_w[lvl] + j]
+                if node[3] == 0:
                     continue
-                span = _tile_range(box, h, T)
-                if span[3] - span[0] <= 1 and span[4] - span[1] <= 1 and span[5] - span[2] <= 1:
-                    count = _emit(span, keys, count, fill, prev)
-                    continue
-                for qv in range(qv0, qv1):
-                    for qu in range(qu0, qu1):
-                        if quad_ranges(rng, qu, qv, max_disc)[4]:
-                            count = quad_tiles(
-                                rng,
-                                pts,
-                                qu,
-                                qv,
-                                params,
-                                table,
-                                R,
-                                t,
-                                eps0,
-                                eps1,
-                                falloff,
-                                margin,
-                                h,
-                                T,
-                                fill,
-                                keys,
-                                count,
-                                prev,
-                                corners,
-                                box,
-                                stack,
-                            )
+                if node[0] != _BIG_LO:
+                    count = _emit_mask(node, keys, count, fill, seen)
+                elif lvl == 0:
+                    count = quad_tiles(
+                        rng, j, i, params, table, R, t, eps0, eps1, falloff, margin, h,
+                        T, fill, keys, count, seen, corners, box, quad_stack,
+                    )  # fmt: skip
+                else:
+                    for di in range(2):
+                        for dj in range(2):
+                            ci = 2 * i + di
+                            cj = 2 * j + dj
+                            if ci < level_h[lvl - 1] and cj < level_w[lvl - 1]:
+                                stack[depth, 0] = lvl - 1
+                                stack[depth, 1] = ci
+                                stack[depth, 2] = cj
+                                depth += 1
             if not fill:
-                offsets[bv] = count
+                offsets[n] = count
 
-    return band_points, band_tiles
+    return pixel_ranges, quad_nodes, band_tiles
 
 
 def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
@@ -714,28 +847,33 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
     R = np.ascontiguousarray(scan.T_W_S[:3, :3])
     t = np.ascontiguousarray(scan.T_W_S[:3, 3])
     rng = scan.surface_m
-    band_points, band_tiles = _band_kernels(scan.kind)
-    pts = np.full((*rng.shape, 2, 3), np.nan)
-    band_points(rng, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff, margin, pts)
-    n_rows = -(-(rng.shape[0] - 1) // _BAND_BLOCK)
-    counts = np.zeros(n_rows, np.int64)
-    args = (
-        rng,
-        pts,
-        scan.params,
-        scan.table,
-        R,
-        t,
-        scan.eps0,
-        scan.eps1,
-        scan.falloff,
-        scan.max_disc,
-        margin,
-        h,
-        T,
-    )
+    pixel_ranges, quad_nodes, band_tiles = _band_kernels(scan.kind)
+    ranges = np.empty((*rng.shape, 6), np.int32)
+    pixel_ranges(
+        rng, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff, margin, h, T,
+        ranges,
+    )  # fmt: skip
+    # the node pyramid: quads, then 2 x 2 merges up to at most _TOP_NODES nodes
+    shapes = [(rng.shape[0] - 1, int(quad_columns(scan.kind, scan.params)))]
+    while shapes[-1][0] * shapes[-1][1] > _TOP_NODES:
+        shapes.append((-(-shapes[-1][0] // 2), -(-shapes[-1][1] // 2)))
+    sizes = np.array([a * b for a, b in shapes], np.int64)
+    level_off = np.zeros(len(shapes), np.int64)
+    np.cumsum(sizes[:-1], out=level_off[1:])
+    nodes = np.empty((int(sizes.sum()), 4), np.int64)
+    quad_nodes(rng, ranges, scan.params, scan.max_disc, nodes)
+    for lvl in range(1, len(shapes)):
+        (ch, cw), (ph, pw) = shapes[lvl - 1], shapes[lvl]
+        child = nodes[level_off[lvl - 1] : level_off[lvl - 1] + sizes[lvl - 1]]
+        parent = nodes[level_off[lvl] : level_off[lvl] + sizes[lvl]]
+        _merge_level(child, ch, cw, parent, ph, pw)
+    level_h = np.array([a for a, _ in shapes], np.int64)
+    level_w = np.array([b for _, b in shapes], np.int64)
+    args = (rng, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff)
+    args += (margin, h, T, nodes, level_off, level_h, level_w)
+    counts = np.zeros(int(sizes[-1]), np.int64)
     band_tiles(*args, False, counts, np.zeros((0, 3), np.int64))
-    offsets = np.zeros(n_rows, np.int64)
+    offsets = np.zeros(len(counts), np.int64)
     np.cumsum(counts[:-1], out=offsets[1:])
     keys = np.empty((int(counts.sum()), 3), np.int64)
     band_tiles(*args, True, offsets, keys)
