@@ -18,10 +18,11 @@ from . import _sensor_kernels as _k
 from ._sensor_kernels import P_H, P_W, in_image, wraps
 from .certainty import contribution
 
-#: Quads per side of a block of the maps used by the tile tests.
-QUAD_BLOCK = 8
-#: Blocks per side of the coarse level of the block statistics (see :func:`coarse_blocks`).
-COARSE = 8
+#: Quads per side of a block of the finest level of the statistics the tile tests read.
+QUAD_BLOCK = 4
+#: A pixel rectangle is tested against the finest level of the block pyramid at which it
+#: covers fewer than this many nodes per side (see :func:`block_pyramid`).
+PYRAMID_SPAN = 4
 
 
 @njit(cache=True, inline="always")
@@ -31,7 +32,7 @@ def quad_columns(kind, params):
     return W if wraps(kind, params) else W - 1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def quad_origin(kind, params, u, v):
     """Quad ``(qu, qv)`` that holds pixel coordinates already known to be in the image."""
     W = int(params[P_W])
@@ -45,7 +46,7 @@ def quad_origin(kind, params, u, v):
     return qu, qv
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def sample_range(kind, params, rng, u, v, max_disc):
     """Bilinear range at ``(u, v)`` and whether the point gets information.
 
@@ -164,24 +165,39 @@ def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out):
             out[qv, qu, 1] = behind + _BOUND_SLACK * (1.0 + abs(behind))
 
 
-def coarse_blocks(
+def block_pyramid(
     reach: np.ndarray, near: np.ndarray, valid: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The block statistics reduced over ``COARSE`` x ``COARSE`` blocks (max, min, all).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The block statistics and their reductions over 2 x 2 nodes, level by level up to a
+    node or so, as flat arrays ``(reach, near, valid)`` (max, min, all) and ``levels``
+    (int64 (L, 3): offset, rows, columns of each level; level 0 is the blocks themselves).
 
-    Tile tests read these for the parts of a large pixel rectangle that cover whole coarse
-    cells, which gives exactly the same result as reading every block.
+    Tile tests fold the nodes of the finest level at which a pixel rectangle covers fewer
+    than ``PYRAMID_SPAN`` nodes per side: a superset of its blocks, so the test stays
+    conservative, at a bounded cost whatever the rectangle's size.
     """
-    nv, nu = reach.shape
-    cv, cu = -(-nv // COARSE), -(-nu // COARSE)
-    pad = ((0, cv * COARSE - nv), (0, cu * COARSE - nu))
-    r = np.pad(reach, pad, constant_values=-np.inf).reshape(cv, COARSE, cu, COARSE)
-    n = np.pad(near, pad, constant_values=np.inf).reshape(cv, COARSE, cu, COARSE)
-    v = np.pad(valid, pad, constant_values=True).reshape(cv, COARSE, cu, COARSE)
+    out_r, out_n, out_v, levels = [reach], [near], [valid], [(0, *reach.shape)]
+    offset = reach.size
+    while max(reach.shape) > 1:
+        nv, nu = reach.shape
+        pad = ((0, nv % 2), (0, nu % 2))
+        reach = np.pad(reach, pad, constant_values=-np.inf)
+        near = np.pad(near, pad, constant_values=np.inf)
+        valid = np.pad(valid, pad, constant_values=True)
+        shape4 = (reach.shape[0] // 2, 2, reach.shape[1] // 2, 2)
+        reach = reach.reshape(shape4).max(axis=(1, 3))
+        near = near.reshape(shape4).min(axis=(1, 3))
+        valid = valid.reshape(shape4).all(axis=(1, 3))
+        out_r.append(reach)
+        out_n.append(near)
+        out_v.append(valid)
+        levels.append((offset, *reach.shape))
+        offset += reach.size
     return (
-        np.ascontiguousarray(r.max(axis=(1, 3))),
-        np.ascontiguousarray(n.min(axis=(1, 3))),
-        np.ascontiguousarray(v.all(axis=(1, 3))),
+        np.concatenate([a.ravel() for a in out_r]),
+        np.concatenate([a.ravel() for a in out_n]),
+        np.concatenate([a.ravel() for a in out_v]),
+        np.array(levels, np.int64).reshape(-1, 3),
     )
 
 

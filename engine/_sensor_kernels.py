@@ -97,7 +97,7 @@ def _elevation_from_table(table, v):
     return table[v0] + (v - v0) * (table[v0 + 1] - table[v0])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def project_point(kind, params, table, x, y, z):
     """Sensor-frame point -> (u, v, d); ``u`` is nan where there is no pixel."""
     nan = math.nan
@@ -208,7 +208,7 @@ def wraps(kind, params):
     return kind in (SPHERICAL, CYLINDRICAL) and params[P_WRAP] != 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def in_image(kind, params, u, v):
     """True when continuous pixel coordinates can be interpolated (METHOD exact conventions).
 

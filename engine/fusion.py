@@ -16,7 +16,6 @@ integrate) with the same result.
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -38,42 +37,6 @@ __all__ = ["IntegrationReport", "Volume", "integrate_seen", "integrate_tiles"]
 Progress = Callable[[int, int], None]
 
 
-@njit(cache=True, inline="always")
-def _clip(A, B, lo, hi):
-    """Narrow ``[lo, hi]`` to the ``t`` with ``A + t * B >= 0``."""
-    if B > 0.0:
-        lo = max(lo, -A / B)
-    elif B < 0.0:
-        hi = min(hi, -A / B)
-    elif A < 0.0:
-        hi = -1.0
-    return lo, hi
-
-
-@njit(cache=True, inline="always")
-def _line_span(kind, params, px, py, pz, dx, dy, dz, T):
-    """Voxels ``c0 <= c < c1`` of a line of ``T`` voxels at sensor-frame points
-    ``p + c * d`` that can project into the image: a pinhole camera's image is a pyramid, so
-    the test is linear in ``c`` (widened by a voxel on each side against rounding; the
-    kernel still tests each voxel). Other sensors: the whole line."""
-    if kind != _k.PINHOLE:
-        return 0, T
-    fx = params[_k.P_FX]
-    fy = params[_k.P_FY]
-    cx = params[_k.P_CX]
-    cy = params[_k.P_CY]
-    wx = params[_k.P_W] - 1.0 - cx
-    wy = params[_k.P_H] - 1.0 - cy
-    lo, hi = _clip(pz, dz, 0.0, T - 1.0)
-    lo, hi = _clip(fx * px + cx * pz, fx * dx + cx * dz, lo, hi)
-    lo, hi = _clip(wx * pz - fx * px, wx * dz - fx * dx, lo, hi)
-    lo, hi = _clip(fy * py + cy * pz, fy * dy + cy * dz, lo, hi)
-    lo, hi = _clip(wy * pz - fy * py, wy * dz - fy * dy, lo, hi)
-    if not lo <= hi:
-        return 0, 0
-    return max(int(math.floor(lo)) - 1, 0), min(int(math.ceil(hi)) + 2, T)
-
-
 @functools.cache
 def _integrate_kernel(kind: int, shape: int):
     """The fusion kernel compiled for one sensor kind and certainty shape.
@@ -82,37 +45,19 @@ def _integrate_kernel(kind: int, shape: int):
     the other models from the innermost loop (about 4x faster than one kernel that tests
     them per voxel).
     """
+    linear = shape == SHAPE_LINEAR
 
     @njit(cache=True, parallel=True)
     def integrate(
-        keys,
-        data,
-        rows,
-        free,
-        sign,
-        T,
-        h,
-        M,
-        c,
-        params,
-        table,
-        rng,
-        bounds,
-        eps0,
-        eps1,
-        rho,
-        falloff,
-        q_rho,
-        max_disc,
-        informed,
-    ):
+        keys, data, rows, free, sign, T, h, M, c, params, table, rng, bounds, eps0, eps1, rho,
+        falloff, q_rho, max_disc, informed,
+    ):  # fmt: skip
         # Add ``sign`` times one scan's contribution to the tiles ``data[rows]``;
         # ``informed[row]`` receives the number of voxels of each tile the scan informs.
         # A tile with ``free[n]`` is known to be free space throughout (classify_tiles):
-        # every voxel receives logit(rho), exactly what the voxel loop would add.
-        # Within a tile, each line of voxels along z is first clipped to the image
-        # (_line_span); a voxel whose quad's bounds (quad_bounds) settle it as free space
-        # or as behind the band is not interpolated.
+        # every voxel receives logit(rho), exactly what the voxel loop would add. In the
+        # voxel loop, a voxel whose quad's bounds (quad_bounds) settle it as free space or
+        # as behind the band is not interpolated.
         free_value = sign * pack(q_rho)
         for n in prange(rows.shape[0]):
             row = rows[n]
@@ -127,7 +72,6 @@ def _integrate_kernel(kind: int, shape: int):
             i0 = keys[row, 0] * T
             j0 = keys[row, 1] * T
             k0 = keys[row, 2] * T
-            z0 = (k0 + 0.5) * h
             for a in range(T):
                 x = ((i0 + a) + 0.5) * h
                 for b in range(T):
@@ -135,11 +79,7 @@ def _integrate_kernel(kind: int, shape: int):
                     bx = M[0, 0] * x + M[0, 1] * y + c[0]
                     by = M[1, 0] * x + M[1, 1] * y + c[1]
                     bz = M[2, 0] * x + M[2, 1] * y + c[2]
-                    c0, c1 = _line_span(
-                        kind, params, bx + M[0, 2] * z0, by + M[1, 2] * z0,
-                        bz + M[2, 2] * z0, M[0, 2] * h, M[1, 2] * h, M[2, 2] * h, T,
-                    )  # fmt: skip
-                    for cc in range(c0, c1):
+                    for cc in range(T):
                         z = ((k0 + cc) + 0.5) * h
                         px = bx + M[0, 2] * z
                         py = by + M[1, 2] * z
@@ -148,7 +88,7 @@ def _integrate_kernel(kind: int, shape: int):
                         if u != u or not _k.in_image(kind, params, u, v):
                             continue
                         qu, qv = quad_origin(kind, params, u, v)
-                        if shape == SHAPE_LINEAR and d < bounds[qv, qu, 0]:
+                        if linear and d < bounds[qv, qu, 0]:
                             data[row, a, b, cc] += free_value
                             count += 1
                             continue
@@ -217,27 +157,11 @@ def integrate_seen(
     if len(rows):
         kernel = _integrate_kernel(scan.kind, scan.shape)
         kernel(
-            keys,
-            data,
-            np.ascontiguousarray(rows, np.int64),
-            np.ascontiguousarray(free),
-            np.int64(sign),
-            grid.tile_size_vox,
-            grid.voxel_size_m,
-            scan.M,
-            scan.c,
-            scan.params,
-            scan.table,
-            scan.range_m,
-            quad_bounds_of(scan),
-            scan.eps0,
-            scan.eps1,
-            scan.rho,
-            scan.falloff,
-            scan.q_rho,
-            scan.max_disc,
-            informed,
-        )
+            keys, data, np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(free),
+            np.int64(sign), grid.tile_size_vox, grid.voxel_size_m, scan.M, scan.c, scan.params,
+            scan.table, scan.range_m, quad_bounds_of(scan), scan.eps0, scan.eps1, scan.rho,
+            scan.falloff, scan.q_rho, scan.max_disc, informed,
+        )  # fmt: skip
     return informed
 
 
@@ -387,10 +311,20 @@ class Volume:
         # owners, then write what changed or was created
         owners = self.store.owners(keys)
         write = changed | is_new
-        for scan_id, touched in touched_by.items():
-            for row in _rows_of(keys, touched):
-                owners[row] = owners[row] | {scan_id}
-                write[row] = True
+        # the new scans own the tiles they touched: group (row, scan) pairs by row
+        ids = list(touched_by)
+        pair_rows = np.concatenate(
+            [np.zeros(0, np.int64)] + [_rows_of(keys, touched_by[s]) for s in ids]
+        )
+        pair_scans = np.repeat(np.arange(len(ids)), [len(touched_by[s]) for s in ids])
+        order = np.argsort(pair_rows, kind="stable")
+        pair_rows, pair_scans = pair_rows[order], pair_scans[order]
+        starts = np.flatnonzero(np.r_[True, pair_rows[1:] != pair_rows[:-1]])
+        for row, group in zip(
+            pair_rows[starts].tolist(), np.split(pair_scans, starts[1:]), strict=True
+        ):
+            owners[row] = owners[row] | {ids[k] for k in group.tolist()}
+        write[pair_rows] = True
         rows = np.flatnonzero(write)
         to_load = rows[~loaded[rows] & ~is_new[rows]]  # owner changes on tiles not in view
         if len(to_load):

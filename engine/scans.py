@@ -216,11 +216,12 @@ class PreparedScan:
     shape: int
     q_rho: int
     max_disc: float  # < 0: no discontinuity test
-    # blocks of quads (engine._sampling.quad_blocks), each (ceil(nqv / B), ceil(nqu / B)):
+    # statistics of blocks of quads (engine._sampling.quad_blocks) in a pyramid of levels
+    # (engine._sampling.block_pyramid), flat:
     reach: np.ndarray  # float64: farthest informed distance
     near: np.ndarray  # float64: nearest corner range of a valid quad
     valid: np.ndarray  # bool: every quad valid
-    coarse: tuple[np.ndarray, np.ndarray, np.ndarray]  # the same over COARSE^2 blocks
+    levels: np.ndarray  # int64 (L, 3): offset, rows and columns of each level
     reach_max: float  # -inf when the scan informs nothing
 
     @property
@@ -264,6 +265,7 @@ def prepare_scan(scan: Scan, params: FusionParams) -> PreparedScan:
     _sampling.quad_blocks(
         kind, sensor_params, rng, eps0, eps1, falloff, max_disc, reach, near, valid
     )
+    pyramid = _sampling.block_pyramid(reach, near, valid)
     R = scan.T_W_S[:3, :3]
     M = np.ascontiguousarray(R.T)
     c = np.ascontiguousarray(-M @ scan.T_W_S[:3, 3])
@@ -283,9 +285,9 @@ def prepare_scan(scan: Scan, params: FusionParams) -> PreparedScan:
         shape=shape,
         q_rho=q_rho,
         max_disc=max_disc,
-        reach=reach,
-        near=near,
-        valid=valid,
-        coarse=_sampling.coarse_blocks(reach, near, valid),
+        reach=pyramid[0],
+        near=pyramid[1],
+        valid=pyramid[2],
+        levels=pyramid[3],
         reach_max=float(reach.max()) if reach.size else -math.inf,
     )

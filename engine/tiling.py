@@ -38,7 +38,7 @@ import numpy as np
 from numba import njit, prange
 
 from . import _sensor_kernels as _k
-from ._sampling import COARSE, QUAD_BLOCK, quad_columns, quad_ranges
+from ._sampling import PYRAMID_SPAN, QUAD_BLOCK, quad_columns, quad_ranges
 from .certainty import SHAPE_LINEAR
 from .defaults import BAND_MARGIN_VOX
 from .grid import GridSpec, unique_keys
@@ -108,29 +108,31 @@ def _fold(acc, far, close, ok):
 
 
 @njit(cache=True)
-def _blocks(reach, near, valid, coarse, qu0, qu1, qv0, qv1, acc):
-    """Fold the block statistics over quads [qu0, qu1] x [qv0, qv1] into ``acc``
-    (farthest reach, nearest range, all valid), reading the coarse level for whole cells."""
-    creach, cnear, cvalid = coarse
-    bv0, bv1 = qv0 // QUAD_BLOCK, qv1 // QUAD_BLOCK
-    bu0, bu1 = qu0 // QUAD_BLOCK, qu1 // QUAD_BLOCK
-    for cv in range(bv0 // COARSE, bv1 // COARSE + 1):
-        v0 = max(bv0, cv * COARSE)
-        v1 = min(bv1, cv * COARSE + COARSE - 1)
-        rows_whole = v0 == cv * COARSE and v1 == cv * COARSE + COARSE - 1
-        for cu in range(bu0 // COARSE, bu1 // COARSE + 1):
-            u0 = max(bu0, cu * COARSE)
-            u1 = min(bu1, cu * COARSE + COARSE - 1)
-            if rows_whole and u0 == cu * COARSE and u1 == cu * COARSE + COARSE - 1:
-                _fold(acc, creach[cv, cu], cnear[cv, cu], cvalid[cv, cu])
-                continue
-            for bv in range(v0, v1 + 1):
-                for bu in range(u0, u1 + 1):
-                    _fold(acc, reach[bv, bu], near[bv, bu], valid[bv, bu])
+def _blocks(reach, near, valid, levels, qu0, qu1, qv0, qv1, acc):
+    """Fold the block statistics over quads [qu0, qu1] x [qv0, qv1] into ``acc`` (farthest
+    reach, nearest range, all valid), from the finest pyramid level at which they cover
+    fewer than ``PYRAMID_SPAN`` nodes per side."""
+    bu0 = qu0 // QUAD_BLOCK
+    bu1 = qu1 // QUAD_BLOCK
+    bv0 = qv0 // QUAD_BLOCK
+    bv1 = qv1 // QUAD_BLOCK
+    level = 0
+    while (bu1 - bu0 >= PYRAMID_SPAN or bv1 - bv0 >= PYRAMID_SPAN) and level + 1 < len(levels):
+        bu0 >>= 1
+        bu1 >>= 1
+        bv0 >>= 1
+        bv1 >>= 1
+        level += 1
+    offset = levels[level, 0]
+    cols = levels[level, 2]
+    for bv in range(bv0, bv1 + 1):
+        for bu in range(bu0, bu1 + 1):
+            _fold(acc, reach[offset + bv * cols + bu], near[offset + bv * cols + bu],
+                  valid[offset + bv * cols + bu])  # fmt: skip
 
 
 @njit(cache=True)
-def _rect_stats(reach, near, valid, coarse, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
+def _rect_stats(reach, near, valid, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
     """Block statistics under a pixel rectangle, into ``acc`` (see :func:`_blocks`).
 
     ``ring > 0`` means columns are azimuth-periodic with that many columns per full turn;
@@ -151,12 +153,12 @@ def _rect_stats(reach, near, valid, coarse, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ri
     any_quad = False
     qu0, qu1 = _clip_quads(lo, hi, nqu)
     if qu1 >= qu0:
-        _blocks(reach, near, valid, coarse, qu0, qu1, qv0, qv1, acc)
+        _blocks(reach, near, valid, levels, qu0, qu1, qv0, qv1, acc)
         any_quad = True
     if ring > 0.0 and hi >= ring:
         qu0, qu1 = _clip_quads(0.0, hi - ring, nqu)
         if qu1 >= qu0:
-            _blocks(reach, near, valid, coarse, qu0, qu1, qv0, qv1, acc)
+            _blocks(reach, near, valid, levels, qu0, qu1, qv0, qv1, acc)
             any_quad = True
     return any_quad
 
@@ -173,40 +175,19 @@ def _box_distance(lo, hi, p):
 
 
 @functools.cache
-def _classify_kernel(kind: int):
-    """Tile classification compiled for one sensor kind (see :func:`classify_tiles`)."""
+def _box_classifier(kind: int):
+    """``classify_box(lo, hi, ...)``: how a scan sees the world box ``[lo, hi]`` of voxel
+    centres (``OUT``, ``PARTIAL`` or ``FREE``, as :func:`classify_tiles` says), compiled for
+    one sensor kind."""
     pointlike = kind in (_k.PINHOLE, _k.ORTHOGRAPHIC)
 
     @njit(cache=True)
-    def classify(
-        key,
-        T,
-        halo,
-        h,
-        M,
-        c,
-        o_W,
-        params,
-        table,
-        reach,
-        near,
-        valid,
-        coarse,
-        reach_max,
-        nqu,
-        nqv,
-        eps0,
-        eps1,
-        linear,
-        lo,
-        hi,
-        acc,
-    ):
+    def classify_box(
+        lo, hi, M, c, o_W, params, table, reach, near, valid, levels, reach_max, nqu, nqv,
+        eps0, eps1, linear, acc,
+    ):  # fmt: skip
         W = params[_k.P_W]
         H = params[_k.P_H]
-        for a in range(3):  # box of the tile's voxel centres (and halo), world frame
-            lo[a] = (key[a] * T + 0.5) * h
-            hi[a] = ((key[a] + 1) * T - 0.5 + halo) * h
         # farthest voxel centre: every range convention is convex, so at a corner
         d_max = -np.inf
         for corner in range(8):
@@ -311,7 +292,7 @@ def _classify_kernel(kind: int):
         if full_v:
             v_lo = 0.0
             v_hi = float(nqv)
-        if not _rect_stats(reach, near, valid, coarse, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
+        if not _rect_stats(reach, near, valid, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
             return OUT
         if acc[0] < d_min - _DIST_SLACK:
             return OUT
@@ -330,6 +311,27 @@ def _classify_kernel(kind: int):
             return FREE
         return PARTIAL
 
+    return classify_box
+
+
+@functools.cache
+def _classify_kernel(kind: int):
+    """Tile classification compiled for one sensor kind (see :func:`classify_tiles`)."""
+    classify_box = _box_classifier(kind)
+
+    @njit(cache=True)
+    def classify(
+        key, T, halo, h, M, c, o_W, params, table, reach, near, valid, levels, reach_max, nqu,
+        nqv, eps0, eps1, linear, lo, hi, acc,
+    ):  # fmt: skip
+        for a in range(3):  # box of the tile's voxel centres (and halo), world frame
+            lo[a] = (key[a] * T + 0.5) * h
+            hi[a] = ((key[a] + 1) * T - 0.5 + halo) * h
+        return classify_box(
+            lo, hi, M, c, o_W, params, table, reach, near, valid, levels, reach_max, nqu, nqv,
+            eps0, eps1, linear, acc,
+        )  # fmt: skip
+
     @njit(cache=True, parallel=True)
     def classify_many(
         keys,
@@ -344,7 +346,7 @@ def _classify_kernel(kind: int):
         reach,
         near,
         valid,
-        coarse,
+        levels,
         reach_max,
         eps0,
         eps1,
@@ -370,7 +372,7 @@ def _classify_kernel(kind: int):
                 reach,
                 near,
                 valid,
-                coarse,
+                levels,
                 reach_max,
                 nqu,
                 nqv,
@@ -413,7 +415,7 @@ def classify_tiles(
         scan.reach,
         scan.near,
         scan.valid,
-        scan.coarse,
+        scan.levels,
         scan.reach_max,
         scan.eps0,
         scan.eps1,

@@ -30,6 +30,11 @@ def key_tuple(key: np.ndarray | Sequence[int]) -> tuple[int, int, int]:
     return int(key[0]), int(key[1]), int(key[2])
 
 
+def _tuples(keys: np.ndarray) -> list[tuple[int, int, int]]:
+    """Rows of int64 (n, 3) keys as tuples of Python ints (one conversion for all)."""
+    return [tuple(k) for k in np.asarray(keys, np.int64).reshape(-1, 3).tolist()]
+
+
 class TileStore(Protocol):
     """Storage of tiles: packed voxel data and owners, by integer tile key."""
 
@@ -75,29 +80,29 @@ class MemoryTileStore:
     def read(self, keys: np.ndarray) -> np.ndarray:
         T = self.tile_size
         out = np.zeros((len(keys), T, T, T), np.int64)
-        for n, key in enumerate(keys):
-            tile = self._data.get(key_tuple(key))
+        for n, key in enumerate(_tuples(keys)):
+            tile = self._data.get(key)
             if tile is not None:
                 out[n] = tile
         return out
 
     def owners(self, keys: np.ndarray) -> list[frozenset[str]]:
-        return [self._owners.get(key_tuple(key), frozenset()) for key in keys]
+        return [self._owners.get(key, frozenset()) for key in _tuples(keys)]
 
     def write(self, keys: np.ndarray, data: np.ndarray, owners: Sequence[frozenset[str]]) -> None:
         T = self.tile_size
         if data.shape != (len(keys), T, T, T) or data.dtype != np.int64:
             raise ValueError(f"tile data must be int64 ({len(keys)}, {T}, {T}, {T})")
-        for key, tile, own in zip(keys, data, owners, strict=True):
+        for key, tile, own in zip(_tuples(keys), data, owners, strict=True):
             if not own:
-                raise ValueError(f"tile {key_tuple(key)} needs at least one owner")
-            self._data[key_tuple(key)] = np.array(tile, copy=True)
-            self._owners[key_tuple(key)] = frozenset(own)
+                raise ValueError(f"tile {key} needs at least one owner")
+            self._data[key] = np.array(tile, copy=True)
+            self._owners[key] = frozenset(own)
 
     def delete(self, keys: np.ndarray) -> None:
-        for key in keys:
-            self._data.pop(key_tuple(key), None)
-            self._owners.pop(key_tuple(key), None)
+        for key in _tuples(keys):
+            self._data.pop(key, None)
+            self._owners.pop(key, None)
 
 
 @dataclass(frozen=True, eq=False)
