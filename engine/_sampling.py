@@ -165,40 +165,53 @@ def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out):
             out[qv, qu, 1] = behind + _BOUND_SLACK * (1.0 + abs(behind))
 
 
+@njit(cache=True)
+def _reduce_level(reach, near, valid, levels, level):
+    # level ``level`` of the pyramid from the one below it: each node covers 2 x 2 nodes
+    src, rows, cols = levels[level - 1]
+    dst, out_rows, out_cols = levels[level]
+    for i in range(out_rows):
+        for j in range(out_cols):
+            far = -np.inf
+            close = np.inf
+            all_valid = True
+            for di in range(2):
+                for dj in range(2):
+                    if 2 * i + di < rows and 2 * j + dj < cols:
+                        k = src + (2 * i + di) * cols + 2 * j + dj
+                        far = max(far, reach[k])
+                        close = min(close, near[k])
+                        all_valid = all_valid and valid[k]
+            k = dst + i * out_cols + j
+            reach[k] = far
+            near[k] = close
+            valid[k] = all_valid
+
+
 def block_pyramid(
     reach: np.ndarray, near: np.ndarray, valid: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The block statistics and their reductions over 2 x 2 nodes, level by level up to a
-    node or so, as flat arrays ``(reach, near, valid)`` (max, min, all) and ``levels``
-    (int64 (L, 3): offset, rows, columns of each level; level 0 is the blocks themselves).
+    """The block statistics and their reductions over 2 x 2 nodes, level by level up to one
+    node, as flat arrays ``(reach, near, valid)`` (max, min, all) and ``levels`` (int64
+    (L, 3): offset, rows, columns of each level; level 0 is the blocks themselves).
 
     Tile tests fold the nodes of the finest level at which a pixel rectangle covers fewer
     than ``PYRAMID_SPAN`` nodes per side: a superset of its blocks, so the test stays
     conservative, at a bounded cost whatever the rectangle's size.
     """
-    out_r, out_n, out_v, levels = [reach], [near], [valid], [(0, *reach.shape)]
-    offset = reach.size
-    while max(reach.shape) > 1:
-        nv, nu = reach.shape
-        pad = ((0, nv % 2), (0, nu % 2))
-        reach = np.pad(reach, pad, constant_values=-np.inf)
-        near = np.pad(near, pad, constant_values=np.inf)
-        valid = np.pad(valid, pad, constant_values=True)
-        shape4 = (reach.shape[0] // 2, 2, reach.shape[1] // 2, 2)
-        reach = reach.reshape(shape4).max(axis=(1, 3))
-        near = near.reshape(shape4).min(axis=(1, 3))
-        valid = valid.reshape(shape4).all(axis=(1, 3))
-        out_r.append(reach)
-        out_n.append(near)
-        out_v.append(valid)
-        levels.append((offset, *reach.shape))
-        offset += reach.size
-    return (
-        np.concatenate([a.ravel() for a in out_r]),
-        np.concatenate([a.ravel() for a in out_n]),
-        np.concatenate([a.ravel() for a in out_v]),
-        np.array(levels, np.int64).reshape(-1, 3),
-    )
+    shapes = [reach.shape]
+    while max(shapes[-1]) > 1:
+        shapes.append((-(-shapes[-1][0] // 2), -(-shapes[-1][1] // 2)))
+    sizes = [a * b for a, b in shapes]
+    offsets = np.concatenate([[0], np.cumsum(sizes[:-1])]).astype(np.int64)
+    levels = np.array([(o, a, b) for o, (a, b) in zip(offsets, shapes, strict=True)], np.int64)
+    total = int(sum(sizes))
+    out = (np.empty(total), np.empty(total), np.empty(total, np.bool_))
+    for flat, level0 in zip(out, (reach, near, valid), strict=True):
+        flat[: reach.size] = level0.ravel()
+    for level in range(1, len(shapes)):
+        _reduce_level(*out, levels, level)
+    return (*out, levels.reshape(-1, 3))
 
 
 @njit(cache=True, inline="always")

@@ -22,7 +22,10 @@ from engine import (
     decode_logodds,
     prepare_scan,
 )
-from engine.defaults import LOGIT_SCALE
+from engine.defaults import COUNT_BITS, LOGIT_SCALE
+from engine.fusion import integrate_seen
+from engine.synth import make_dataset
+from engine.tiling import FREE, OUT, classify_tiles, tiles_touched
 from tests import reference, scenes
 
 H = 0.02  # voxel size of the small scene
@@ -84,6 +87,28 @@ def test_matches_dense_reference(name: str, mode: str) -> None:
     assert len(volume.tile_keys()) > 0
     ref, _ = _compare_with_reference(volume, scans)
     assert (ref.count > 0).sum() > 1000, "the scene should inform a good part of the grid"
+
+
+def test_mapping_allocation_is_tight() -> None:
+    # Most tiles a scan allocates hold a voxel of its surface band (the contribution is
+    # neither free space nor nothing). Allocation boxes each pixel quad's band; the 4 x 4
+    # quad blocks it used to box at once gave 0.49 on this case, quad by quad gives 0.77.
+    h, T = 0.01, 16
+    data = make_dataset("room", views=6)
+    params = FusionParams(NoiseModel(eps_m=2 * h, rho=0.05))
+    grid = GridSpec(h, T, "mapping")
+    allocated = needed = 0
+    for _, scan in data.scans:
+        prepared = prepare_scan(scan, params)
+        keys = tiles_touched(prepared, grid)
+        packed = np.zeros((len(keys), T, T, T), np.int64)
+        status = classify_tiles(prepared, grid, keys)
+        rows = np.flatnonzero(status != OUT)
+        integrate_seen(prepared, grid, keys, packed, rows, status[rows] == FREE, 1)
+        band = (decode_count(packed) > 0) & (packed >> COUNT_BITS != prepared.q_rho)
+        allocated += len(keys)
+        needed += int(band.reshape(len(keys), -1).any(axis=1).sum())
+    assert needed / allocated > 0.7
 
 
 @pytest.mark.parametrize(
