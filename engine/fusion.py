@@ -169,9 +169,7 @@ def quad_bounds_of(scan: PreparedScan) -> np.ndarray:
     """The scan's per-quad free-space and reach bounds (:func:`engine._sampling.quad_bounds`)."""
     rng = scan.range_m
     out = np.empty((rng.shape[0] - 1, quad_columns(scan.kind, scan.params), 2), np.float32)
-    quad_bounds(
-        scan.kind, scan.params, rng, scan.eps0, scan.eps1, scan.falloff, scan.max_disc, out
-    )
+    quad_bounds(scan.kind, scan.params, rng, scan.eps0, scan.eps1, scan.falloff, scan.max_disc, out)
     return out
 
 
@@ -317,8 +315,8 @@ class Volume:
             [np.zeros(0, np.int64)] + [_rows_of(keys, touched_by[s]) for s in ids]
         )
         pair_scans = np.repeat(np.arange(len(ids)), [len(touched_by[s]) for s in ids])
-        order = np.argsort(pair_rows, kind="stable")
-        pair_rows, pair_scans = pair_rows[order], pair_scans[order]
+        by_row = np.argsort(pair_rows, kind="stable")
+        pair_rows, pair_scans = pair_rows[by_row], pair_scans[by_row]
         starts = np.flatnonzero(np.r_[True, pair_rows[1:] != pair_rows[:-1]])
         for row, group in zip(
             pair_rows[starts].tolist(), np.split(pair_scans, starts[1:]), strict=True

@@ -876,8 +876,10 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
         _merge_level(child, ch, cw, parent, ph, pw)
     level_h = np.array([a for a, _ in shapes], np.int64)
     level_w = np.array([b for _, b in shapes], np.int64)
-    args = (rng, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff)
-    args += (margin, h, T, nodes, level_off, level_h, level_w)
+    args = (
+        rng, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff, margin, h, T,
+        nodes, level_off, level_h, level_w,
+    )  # fmt: skip
     counts = np.zeros(int(sizes[-1]), np.int64)
     band_tiles(*args, False, counts, np.zeros((0, 3), np.int64))
     offsets = np.zeros(len(counts), np.int64)

@@ -32,7 +32,7 @@ def key_tuple(key: np.ndarray | Sequence[int]) -> tuple[int, int, int]:
 
 def _tuples(keys: np.ndarray) -> list[tuple[int, int, int]]:
     """Rows of int64 (n, 3) keys as tuples of Python ints (one conversion for all)."""
-    return [tuple(k) for k in np.asarray(keys, np.int64).reshape(-1, 3).tolist()]
+    return [(a, b, c) for a, b, c in np.asarray(keys, np.int64).reshape(-1, 3).tolist()]
 
 
 class TileStore(Protocol):
