@@ -94,43 +94,15 @@ def quad_ranges(rng, qu, qv, max_disc):
     return r00, r01, r10, r11, ok
 
 
-@njit(cache=True, parallel=True)
-def quad_blocks(kind, params, rng, eps0, eps1, falloff, max_disc, reach, near, valid):
-    """Statistics of blocks of ``QUAD_BLOCK`` x ``QUAD_BLOCK`` pixel quads for tile tests.
-
-    * ``reach``: the farthest informed distance of any quad in the block. A point whose
-      interpolated range is ``r`` is informed up to ``d = r + eps(r) + f(r)``, which grows
-      with ``r``, so a quad informs nothing beyond the value for its largest corner;
-      ``-inf`` where no quad of the block is valid.
-    * ``near``: the smallest corner range of the block's valid quads (``+inf`` if none).
-    * ``valid``: whether every quad of the block is valid (informs the points it covers).
-    """
-    nqv = rng.shape[0] - 1
-    nqu = quad_columns(kind, params)
-    for bv in prange(reach.shape[0]):
-        for bu in range(reach.shape[1]):
-            far = -np.inf
-            close = np.inf
-            all_valid = True
-            for qv in range(bv * QUAD_BLOCK, min(nqv, (bv + 1) * QUAD_BLOCK)):
-                for qu in range(bu * QUAD_BLOCK, min(nqu, (bu + 1) * QUAD_BLOCK)):
-                    r00, r01, r10, r11, ok = quad_ranges(rng, qu, qv, max_disc)
-                    if not ok:
-                        all_valid = False
-                        continue
-                    r = max(max(r00, r01), max(r10, r11))
-                    eps = eps0 + eps1 * r
-                    f = falloff if falloff > 0.0 else eps
-                    far = max(far, r + eps + f)
-                    close = min(close, min(min(r00, r01), min(r10, r11)))
-            reach[bv, bu] = far
-            near[bv, bu] = close
-            valid[bv, bu] = all_valid
-
-
 #: Slack (metres, plus the same relative to the range) by which :func:`quad_bounds` widens its
 #: bounds, so that float32 storage and rounding never make them claim a voxel wrongly.
 _BOUND_SLACK = 1e-6
+
+
+def widened(reach: float) -> float:
+    """An upper bound on the reach that :func:`quad_bounds` stores for a true ``reach``
+    (twice its slack: the float32 rounding after the slack moves it by far less)."""
+    return reach + 2.0 * _BOUND_SLACK * (1.0 + abs(reach))
 
 
 @njit(cache=True, parallel=True)
@@ -165,53 +137,73 @@ def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out):
             out[qv, qu, 1] = behind + _BOUND_SLACK * (1.0 + abs(behind))
 
 
+def quad_bounds_array(kind, params, rng, eps0, eps1, falloff, max_disc) -> np.ndarray:
+    """:func:`quad_bounds` of a prepared range map, float32 (H - 1, quad_columns, 2)."""
+    out = np.empty((rng.shape[0] - 1, quad_columns(kind, params), 2), np.float32)
+    quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out)
+    return out
+
+
 @njit(cache=True)
-def _reduce_level(reach, near, valid, levels, level):
+def _blocks_of_quads(bounds, free, reach):
+    # level 0 of the pyramid: QUAD_BLOCK x QUAD_BLOCK quads per node
+    nqv, nqu = bounds.shape[0], bounds.shape[1]
+    cols = -(-nqu // QUAD_BLOCK)
+    for bv in range(-(-nqv // QUAD_BLOCK)):
+        for bu in range(cols):
+            lo = np.inf
+            hi = -np.inf
+            for qv in range(bv * QUAD_BLOCK, min(nqv, (bv + 1) * QUAD_BLOCK)):
+                for qu in range(bu * QUAD_BLOCK, min(nqu, (bu + 1) * QUAD_BLOCK)):
+                    lo = min(lo, bounds[qv, qu, 0])
+                    hi = max(hi, bounds[qv, qu, 1])
+            free[bv * cols + bu] = lo
+            reach[bv * cols + bu] = hi
+
+
+@njit(cache=True)
+def _reduce_level(free, reach, levels, level):
     # level ``level`` of the pyramid from the one below it: each node covers 2 x 2 nodes
     src, rows, cols = levels[level - 1]
     dst, out_rows, out_cols = levels[level]
     for i in range(out_rows):
         for j in range(out_cols):
-            far = -np.inf
-            close = np.inf
-            all_valid = True
+            lo = np.inf
+            hi = -np.inf
             for di in range(2):
                 for dj in range(2):
                     if 2 * i + di < rows and 2 * j + dj < cols:
                         k = src + (2 * i + di) * cols + 2 * j + dj
-                        far = max(far, reach[k])
-                        close = min(close, near[k])
-                        all_valid = all_valid and valid[k]
-            k = dst + i * out_cols + j
-            reach[k] = far
-            near[k] = close
-            valid[k] = all_valid
+                        lo = min(lo, free[k])
+                        hi = max(hi, reach[k])
+            free[dst + i * out_cols + j] = lo
+            reach[dst + i * out_cols + j] = hi
 
 
-def block_pyramid(
-    reach: np.ndarray, near: np.ndarray, valid: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The block statistics and their reductions over 2 x 2 nodes, level by level up to one
-    node, as flat arrays ``(reach, near, valid)`` (max, min, all) and ``levels`` (int64
-    (L, 3): offset, rows, columns of each level; level 0 is the blocks themselves).
+def block_pyramid(bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The per-quad bounds (:func:`quad_bounds`) reduced for tile tests: over blocks of
+    ``QUAD_BLOCK`` x ``QUAD_BLOCK`` quads (level 0), then over 2 x 2 nodes level by level up
+    to one node. Returns flat arrays ``free`` (the smallest free-space bound: a point of
+    the node's pixels nearer than it is free space; ``-inf`` where a quad is invalid) and
+    ``reach`` (the largest reach: nothing farther is informed), and ``levels`` (int64
+    (L, 3): offset, rows, columns of each level).
 
     Tile tests fold the nodes of the finest level at which a pixel rectangle covers fewer
     than ``PYRAMID_SPAN`` nodes per side: a superset of its blocks, so the test stays
     conservative, at a bounded cost whatever the rectangle's size.
     """
-    shapes = [reach.shape]
+    shapes = [(-(-bounds.shape[0] // QUAD_BLOCK), -(-bounds.shape[1] // QUAD_BLOCK))]
     while max(shapes[-1]) > 1:
         shapes.append((-(-shapes[-1][0] // 2), -(-shapes[-1][1] // 2)))
     sizes = [a * b for a, b in shapes]
     offsets = np.concatenate([[0], np.cumsum(sizes[:-1])]).astype(np.int64)
     levels = np.array([(o, a, b) for o, (a, b) in zip(offsets, shapes, strict=True)], np.int64)
-    total = int(sum(sizes))
-    out = (np.empty(total), np.empty(total), np.empty(total, np.bool_))
-    for flat, level0 in zip(out, (reach, near, valid), strict=True):
-        flat[: reach.size] = level0.ravel()
+    free = np.empty(int(sum(sizes)))
+    reach = np.empty(int(sum(sizes)))
+    _blocks_of_quads(bounds, free, reach)
     for level in range(1, len(shapes)):
-        _reduce_level(*out, levels, level)
-    return (*out, levels.reshape(-1, 3))
+        _reduce_level(free, reach, levels, level)
+    return free, reach, levels.reshape(-1, 3)
 
 
 @njit(cache=True, inline="always")

@@ -23,7 +23,7 @@ import numpy as np
 from numba import njit, prange
 
 from . import _sensor_kernels as _k
-from ._sampling import quad_bounds, quad_columns, quad_origin, sample_range
+from ._sampling import quad_bounds_array, quad_origin, sample_range
 from .certainty import SHAPE_LINEAR, contribution, pack
 from .errors import InvalidInputError, ScanNotFoundError
 from .grid import GridSpec, pack_keys, unique_keys
@@ -156,21 +156,16 @@ def integrate_seen(
     informed = np.zeros(len(keys), np.int64)
     if len(rows):
         kernel = _integrate_kernel(scan.kind, scan.shape)
+        bounds = quad_bounds_array(
+            scan.kind, scan.params, scan.range_m, scan.eps0, scan.eps1, scan.falloff, scan.max_disc
+        )
         kernel(
             keys, data, np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(free),
             np.int64(sign), grid.tile_size_vox, grid.voxel_size_m, scan.M, scan.c, scan.params,
-            scan.table, scan.range_m, quad_bounds_of(scan), scan.eps0, scan.eps1, scan.rho,
+            scan.table, scan.range_m, bounds, scan.eps0, scan.eps1, scan.rho,
             scan.falloff, scan.q_rho, scan.max_disc, informed,
         )  # fmt: skip
     return informed
-
-
-def quad_bounds_of(scan: PreparedScan) -> np.ndarray:
-    """The scan's per-quad free-space and reach bounds (:func:`engine._sampling.quad_bounds`)."""
-    rng = scan.range_m
-    out = np.empty((rng.shape[0] - 1, quad_columns(scan.kind, scan.params), 2), np.float32)
-    quad_bounds(scan.kind, scan.params, rng, scan.eps0, scan.eps1, scan.falloff, scan.max_disc, out)
-    return out
 
 
 @dataclass

@@ -216,11 +216,10 @@ class PreparedScan:
     shape: int
     q_rho: int
     max_disc: float  # < 0: no discontinuity test
-    # statistics of blocks of quads (engine._sampling.quad_blocks) in a pyramid of levels
-    # (engine._sampling.block_pyramid), flat:
-    reach: np.ndarray  # float64: farthest informed distance
-    near: np.ndarray  # float64: nearest corner range of a valid quad
-    valid: np.ndarray  # bool: every quad valid
+    # per-quad bounds reduced over blocks of quads, in a pyramid of levels, flat
+    # (engine._sampling.block_pyramid):
+    free: np.ndarray  # float64: nearer than this, a point is in free space
+    reach: np.ndarray  # float64: farther than this, nothing is informed
     levels: np.ndarray  # int64 (L, 3): offset, rows and columns of each level
     reach_max: float  # -inf when the scan informs nothing
 
@@ -255,17 +254,9 @@ def prepare_scan(scan: Scan, params: FusionParams) -> PreparedScan:
     eps0, eps1, rho, falloff, shape, q_rho = noise.kernel_args()
     max_disc = -1.0 if params.max_discontinuity_m is None else params.max_discontinuity_m
     kind, sensor_params, table = scan.sensor.kernel_args()
-    nqv = rng.shape[0] - 1
-    nqu = _sampling.quad_columns(kind, sensor_params)
-    B = _sampling.QUAD_BLOCK
-    blocks = (-(-nqv // B), -(-nqu // B))
-    reach = np.empty(blocks, np.float64)
-    near = np.empty(blocks, np.float64)
-    valid = np.empty(blocks, np.bool_)
-    _sampling.quad_blocks(
-        kind, sensor_params, rng, eps0, eps1, falloff, max_disc, reach, near, valid
+    free, reach, levels = _sampling.block_pyramid(
+        _sampling.quad_bounds_array(kind, sensor_params, rng, eps0, eps1, falloff, max_disc)
     )
-    pyramid = _sampling.block_pyramid(reach, near, valid)
     R = scan.T_W_S[:3, :3]
     M = np.ascontiguousarray(R.T)
     c = np.ascontiguousarray(-M @ scan.T_W_S[:3, 3])
@@ -285,9 +276,8 @@ def prepare_scan(scan: Scan, params: FusionParams) -> PreparedScan:
         shape=shape,
         q_rho=q_rho,
         max_disc=max_disc,
-        reach=pyramid[0],
-        near=pyramid[1],
-        valid=pyramid[2],
-        levels=pyramid[3],
-        reach_max=float(reach.max()) if reach.size else -math.inf,
+        free=free,
+        reach=reach,
+        levels=levels,
+        reach_max=float(reach[levels[-1, 0]]),
     )

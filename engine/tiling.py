@@ -11,7 +11,7 @@ volume does not depend on the order in which scans arrive):
   rectangle (exact corner projection for pinhole and orthographic sensors, the
   circumscribed sphere for spherical and cylindrical ones) and compared with
   block statistics of the pixel quads under it (farthest informed distance,
-  nearest range, all quads valid; :func:`engine._sampling.quad_blocks`). A tile
+  free-space bound; :func:`engine._sampling.block_pyramid`). A tile
   is *in view* unless it is ``OUT``.
 * :func:`tiles_touched` enumerates the tiles a scan *allocates*. Mapping mode:
   the tiles that the band ``[-eps - margin, eps + falloff]`` around the
@@ -38,7 +38,7 @@ import numpy as np
 from numba import njit, prange
 
 from . import _sensor_kernels as _k
-from ._sampling import PYRAMID_SPAN, QUAD_BLOCK, quad_columns, quad_ranges
+from ._sampling import PYRAMID_SPAN, QUAD_BLOCK, quad_columns, quad_ranges, widened
 from .certainty import SHAPE_LINEAR
 from .defaults import BAND_MARGIN_VOX
 from .grid import GridSpec, unique_keys
@@ -99,18 +99,16 @@ def _clip_quads(lo, hi, n):
     return a, b
 
 
-@njit(cache=True)
-def _fold(acc, far, close, ok):
+@njit(cache=True, inline="always")
+def _fold(acc, far, free):
     acc[0] = max(acc[0], far)
-    acc[1] = min(acc[1], close)
-    if not ok:
-        acc[2] = 0.0
+    acc[1] = min(acc[1], free)
 
 
 @njit(cache=True)
-def _blocks(reach, near, valid, levels, qu0, qu1, qv0, qv1, acc):
-    """Fold the block statistics over quads [qu0, qu1] x [qv0, qv1] into ``acc`` (farthest
-    reach, nearest range, all valid), from the finest pyramid level at which they cover
+def _blocks(reach, free, levels, qu0, qu1, qv0, qv1, acc):
+    """Fold the block statistics over quads [qu0, qu1] x [qv0, qv1] into ``acc`` (largest
+    reach, smallest free-space bound), from the finest pyramid level at which they cover
     fewer than ``PYRAMID_SPAN`` nodes per side."""
     bu0 = qu0 // QUAD_BLOCK
     bu1 = qu1 // QUAD_BLOCK
@@ -127,12 +125,11 @@ def _blocks(reach, near, valid, levels, qu0, qu1, qv0, qv1, acc):
     cols = levels[level, 2]
     for bv in range(bv0, bv1 + 1):
         for bu in range(bu0, bu1 + 1):
-            _fold(acc, reach[offset + bv * cols + bu], near[offset + bv * cols + bu],
-                  valid[offset + bv * cols + bu])  # fmt: skip
+            _fold(acc, reach[offset + bv * cols + bu], free[offset + bv * cols + bu])
 
 
 @njit(cache=True)
-def _rect_stats(reach, near, valid, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
+def _rect_stats(reach, free, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
     """Block statistics under a pixel rectangle, into ``acc`` (see :func:`_blocks`).
 
     ``ring > 0`` means columns are azimuth-periodic with that many columns per full turn;
@@ -141,7 +138,6 @@ def _rect_stats(reach, near, valid, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ri
     """
     acc[0] = -np.inf
     acc[1] = np.inf
-    acc[2] = 1.0
     qv0, qv1 = _clip_quads(v_lo - _PIXEL_SLACK, v_hi + _PIXEL_SLACK, nqv)
     if qv1 < qv0:
         return False
@@ -153,12 +149,12 @@ def _rect_stats(reach, near, valid, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ri
     any_quad = False
     qu0, qu1 = _clip_quads(lo, hi, nqu)
     if qu1 >= qu0:
-        _blocks(reach, near, valid, levels, qu0, qu1, qv0, qv1, acc)
+        _blocks(reach, free, levels, qu0, qu1, qv0, qv1, acc)
         any_quad = True
     if ring > 0.0 and hi >= ring:
         qu0, qu1 = _clip_quads(0.0, hi - ring, nqu)
         if qu1 >= qu0:
-            _blocks(reach, near, valid, levels, qu0, qu1, qv0, qv1, acc)
+            _blocks(reach, free, levels, qu0, qu1, qv0, qv1, acc)
             any_quad = True
     return any_quad
 
@@ -183,9 +179,8 @@ def _box_classifier(kind: int):
 
     @njit(cache=True)
     def classify_box(
-        lo, hi, M, c, o_W, params, table, reach, near, valid, levels, reach_max, nqu, nqv,
-        eps0, eps1, linear, acc,
-    ):  # fmt: skip
+        lo, hi, M, c, o_W, params, table, reach, free, levels, reach_max, nqu, nqv, linear, acc
+    ):
         W = params[_k.P_W]
         H = params[_k.P_H]
         # farthest voxel centre: every range convention is convex, so at a corner
@@ -292,7 +287,7 @@ def _box_classifier(kind: int):
         if full_v:
             v_lo = 0.0
             v_hi = float(nqv)
-        if not _rect_stats(reach, near, valid, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
+        if not _rect_stats(reach, free, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
             return OUT
         if acc[0] < d_min - _DIST_SLACK:
             return OUT
@@ -301,13 +296,7 @@ def _box_classifier(kind: int):
             not full_u and u_lo - _PIXEL_SLACK >= 0.0 and u_hi + _PIXEL_SLACK <= W - 1.0
         )
         inside_v = not full_v and v_lo - _PIXEL_SLACK >= 0.0 and v_hi + _PIXEL_SLACK <= H - 1.0
-        if (
-            linear
-            and inside_u
-            and inside_v
-            and acc[2] != 0.0
-            and d_max < acc[1] * (1.0 - eps1) - eps0 - _DIST_SLACK
-        ):
+        if linear and inside_u and inside_v and d_max < acc[1] - _DIST_SLACK:
             return FREE
         return PARTIAL
 
@@ -321,15 +310,15 @@ def _classify_kernel(kind: int):
 
     @njit(cache=True)
     def classify(
-        key, T, halo, h, M, c, o_W, params, table, reach, near, valid, levels, reach_max, nqu,
-        nqv, eps0, eps1, linear, lo, hi, acc,
+        key, T, halo, h, M, c, o_W, params, table, reach, free, levels, reach_max, nqu, nqv,
+        linear, lo, hi, acc,
     ):  # fmt: skip
         for a in range(3):  # box of the tile's voxel centres (and halo), world frame
             lo[a] = (key[a] * T + 0.5) * h
             hi[a] = ((key[a] + 1) * T - 0.5 + halo) * h
         return classify_box(
-            lo, hi, M, c, o_W, params, table, reach, near, valid, levels, reach_max, nqu, nqv,
-            eps0, eps1, linear, acc,
+            lo, hi, M, c, o_W, params, table, reach, free, levels, reach_max, nqu, nqv, linear,
+            acc,
         )  # fmt: skip
 
     @njit(cache=True, parallel=True)
@@ -344,12 +333,9 @@ def _classify_kernel(kind: int):
         params,
         table,
         reach,
-        near,
-        valid,
+        free,
         levels,
         reach_max,
-        eps0,
-        eps1,
         linear,
         out,
     ):
@@ -370,14 +356,11 @@ def _classify_kernel(kind: int):
                 params,
                 table,
                 reach,
-                near,
-                valid,
+                free,
                 levels,
                 reach_max,
                 nqu,
                 nqv,
-                eps0,
-                eps1,
                 linear,
                 lo,
                 hi,
@@ -413,12 +396,9 @@ def classify_tiles(
         scan.params,
         scan.table,
         scan.reach,
-        scan.near,
-        scan.valid,
+        scan.free,
         scan.levels,
         scan.reach_max,
-        scan.eps0,
-        scan.eps1,
         scan.shape == SHAPE_LINEAR,
         out,
     )
@@ -917,7 +897,7 @@ def bounding_sphere(scan: Scan, params: FusionParams) -> tuple[np.ndarray, float
     eps = noise.eps_m + noise.eps_per_m * r_max
     falloff = noise.falloff_m if noise.falloff_m is not None else eps
     kind, sensor_params, _ = scan.sensor.kernel_args()
-    return origin, _sphere_radius(kind, sensor_params, r_max + eps + falloff)
+    return origin, _sphere_radius(kind, sensor_params, widened(r_max + eps + falloff))
 
 
 def _sphere_radius(kind: int, p: np.ndarray, reach: float) -> float:
