@@ -509,61 +509,65 @@ def _box_mask(nx, ny, nz):
     return mask
 
 
+@njit(cache=True, inline="always")
+def _merge(children, n, out):
+    """Merge nodes ``children[:n]`` of the allocation pyramid into ``out``.
+
+    A node is ``(lo_x, lo_y, lo_z, mask)``: ``mask`` has bit ``16 x + 4 y + z`` set when the
+    band touches tile ``lo + (x, y, z)`` (0: no band); ``lo_x == _BIG_LO`` when the band
+    spans more than ``_SPAN`` tiles on some axis (then so does the merged node)."""
+    none = np.iinfo(np.int64).max
+    lo0 = none
+    lo1 = none
+    lo2 = none
+    big = False
+    for k in range(n):
+        if children[k, 0] == _BIG_LO:
+            big = True
+        elif children[k, 3] != 0:
+            lo0 = min(lo0, children[k, 0])
+            lo1 = min(lo1, children[k, 1])
+            lo2 = min(lo2, children[k, 2])
+    mask = np.int64(0)
+    if not big and lo0 != none:
+        for k in range(n):
+            m = children[k, 3]
+            if m == 0:
+                continue
+            ox = children[k, 0] - lo0
+            oy = children[k, 1] - lo1
+            oz = children[k, 2] - lo2
+            if (
+                ox > _SPAN
+                or oy > _SPAN
+                or oz > _SPAN
+                or m & _OVERFLOW[0, ox]
+                or m & _OVERFLOW[1, oy]
+                or m & _OVERFLOW[2, oz]
+            ):
+                big = True
+            else:
+                mask |= m << (16 * ox + 4 * oy + oz)
+    out[0] = _BIG_LO if big else lo0
+    out[1] = lo1
+    out[2] = lo2
+    out[3] = -1 if big else mask
+
+
 @njit(cache=True, parallel=True)
 def _merge_level(child, ch, cw, parent, ph, pw):
-    """One level up the node pyramid of :func:`tiles_touched`: each parent node covers 2 x 2
-    child nodes. A node is ``(lo_x, lo_y, lo_z, mask)``: ``mask`` has bit ``16 x + 4 y + z``
-    set when the band touches tile ``lo + (x, y, z)`` (0: no band); ``lo_x == _BIG_LO`` when
-    the band spans more than ``_SPAN`` tiles on some axis."""
-    none = np.iinfo(np.int64).max
+    """One level up the node pyramid of :func:`tiles_touched` (see :func:`_merge`): each
+    parent node covers 2 x 2 child nodes."""
     for i in prange(ph):
+        children = np.empty((4, 4), np.int64)
         for j in range(pw):
-            lo0 = none
-            lo1 = none
-            lo2 = none
-            big = False
+            n = 0
             for di in range(2):
                 for dj in range(2):
-                    ci = 2 * i + di
-                    cj = 2 * j + dj
-                    if ci < ch and cj < cw:
-                        node = child[ci * cw + cj]
-                        if node[0] == _BIG_LO:
-                            big = True
-                        elif node[3] != 0:
-                            lo0 = min(lo0, node[0])
-                            lo1 = min(lo1, node[1])
-                            lo2 = min(lo2, node[2])
-            out = parent[i * pw + j]
-            mask = np.int64(0)
-            if not big and lo0 != none:
-                for di in range(2):
-                    for dj in range(2):
-                        ci = 2 * i + di
-                        cj = 2 * j + dj
-                        if ci >= ch or cj >= cw:
-                            continue
-                        node = child[ci * cw + cj]
-                        if node[3] == 0:
-                            continue
-                        ox = node[0] - lo0
-                        oy = node[1] - lo1
-                        oz = node[2] - lo2
-                        if (
-                            ox > _SPAN
-                            or oy > _SPAN
-                            or oz > _SPAN
-                            or node[3] & _OVERFLOW[0, ox]
-                            or node[3] & _OVERFLOW[1, oy]
-                            or node[3] & _OVERFLOW[2, oz]
-                        ):
-                            big = True
-                        else:
-                            mask |= node[3] << (16 * ox + 4 * oy + oz)
-            out[0] = _BIG_LO if big else lo0
-            out[1] = lo1
-            out[2] = lo2
-            out[3] = -1 if big else mask
+                    if 2 * i + di < ch and 2 * j + dj < cw:
+                        children[n] = child[(2 * i + di) * cw + 2 * j + dj]
+                        n += 1
+            _merge(children, n, parent[i * pw + j])
 
 
 @njit(cache=True, inline="always")
@@ -606,40 +610,49 @@ def _band_kernels(kind: int):
                     out[v, u, ax] = _first_tile(min(ends[0, ax], ends[1, ax]), h, T)
                     out[v, u, 3 + ax] = _last_tile(max(ends[0, ax], ends[1, ax]), h, T)
 
+    @njit(cache=True, inline="always")
+    def quad_node(rng, ranges, qu, qv, max_disc, out):
+        # the node of one quad (see _merge): the tiles of the box of its band-end points, or
+        # big when it spans more than _SPAN tiles on an axis (quad_tiles covers it)
+        out[0] = 0
+        out[3] = 0
+        if not quad_ranges(rng, qu, qv, max_disc)[4]:
+            return
+        qu1 = qu + 1 if qu + 1 < rng.shape[1] else 0
+        a = ranges[qv, qu]
+        b = ranges[qv, qu1]
+        c = ranges[qv + 1, qu]
+        d = ranges[qv + 1, qu1]
+        i0 = min(min(a[0], b[0]), min(c[0], d[0]))
+        j0 = min(min(a[1], b[1]), min(c[1], d[1]))
+        k0 = min(min(a[2], b[2]), min(c[2], d[2]))
+        i1 = max(max(a[3], b[3]), max(c[3], d[3]))
+        j1 = max(max(a[4], b[4]), max(c[4], d[4]))
+        k1 = max(max(a[5], b[5]), max(c[5], d[5]))
+        if i1 - i0 >= _SPAN or j1 - j0 >= _SPAN or k1 - k0 >= _SPAN:
+            out[0] = _BIG_LO
+            out[3] = -1
+            return
+        out[0] = i0
+        out[1] = j0
+        out[2] = k0
+        out[3] = _box_mask(i1 - i0 + 1, j1 - j0 + 1, k1 - k0 + 1)
+
     @njit(cache=True, parallel=True)
     def quad_nodes(rng, ranges, params, max_disc, nodes):
-        # level 0 of the node pyramid (see _merge_level): the tiles of the box of each valid
-        # quad's band-end points; a quad spanning more than _SPAN tiles on an axis is big
-        # (covered piece by piece by quad_tiles during the walk)
+        # level 0 of the node pyramid: one node per 2 x 2 quads, the merge of theirs
         nqv = rng.shape[0] - 1
         nqu = quad_columns(kind, params)
-        W = rng.shape[1]
-        for qv in prange(nqv):
-            for qu in range(nqu):
-                node = nodes[qv * nqu + qu]
-                node[0] = 0
-                node[3] = 0
-                if not quad_ranges(rng, qu, qv, max_disc)[4]:
-                    continue
-                qu1 = qu + 1 if qu + 1 < W else 0
-                a = ranges[qv, qu]
-                b = ranges[qv, qu1]
-                c = ranges[qv + 1, qu]
-                d = ranges[qv + 1, qu1]
-                i0 = min(min(a[0], b[0]), min(c[0], d[0]))
-                j0 = min(min(a[1], b[1]), min(c[1], d[1]))
-                k0 = min(min(a[2], b[2]), min(c[2], d[2]))
-                i1 = max(max(a[3], b[3]), max(c[3], d[3]))
-                j1 = max(max(a[4], b[4]), max(c[4], d[4]))
-                k1 = max(max(a[5], b[5]), max(c[5], d[5]))
-                if i1 - i0 >= _SPAN or j1 - j0 >= _SPAN or k1 - k0 >= _SPAN:
-                    node[0] = _BIG_LO
-                    node[3] = -1
-                    continue
-                node[0] = i0
-                node[1] = j0
-                node[2] = k0
-                node[3] = _box_mask(i1 - i0 + 1, j1 - j0 + 1, k1 - k0 + 1)
+        cols = -(-nqu // 2)
+        for bv in prange(-(-nqv // 2)):
+            quads = np.empty((4, 4), np.int64)
+            for bu in range(cols):
+                n = 0
+                for qv in range(2 * bv, min(2 * bv + 2, nqv)):
+                    for qu in range(2 * bu, min(2 * bu + 2, nqu)):
+                        quad_node(rng, ranges, qu, qv, max_disc, quads[n])
+                        n += 1
+                _merge(quads, n, nodes[bv * cols + bu])
 
     @njit(cache=True)
     def node_points(
@@ -776,14 +789,16 @@ def _band_kernels(kind: int):
 
     @njit(cache=True, parallel=True)
     def band_tiles(
-        rng, params, table, R, t, eps0, eps1, falloff, margin, h, T, nodes, level_off,
-        level_h, level_w, fill, offsets, keys,
+        rng, ranges, params, table, R, t, eps0, eps1, falloff, max_disc, margin, h, T, nodes,
+        level_off, level_h, level_w, fill, offsets, keys,
     ):  # fmt: skip
         # Walk the node pyramid from each top node: a masked node emits its tiles, a big one
         # is opened (a big quad is covered by quad_tiles). Count first (fill False: the
         # number of keys of each top node into offsets), then fill from those offsets.
         top = level_off.shape[0] - 1
         tw = level_w[top]
+        nqv = rng.shape[0] - 1
+        nqu = quad_columns(kind, params)
         n_top = level_h[top] * tw
         for n in prange(n_top):
             count = offsets[n]
@@ -791,6 +806,7 @@ def _band_kernels(kind: int):
             corners = np.empty((8, 3))
             box = np.empty(6)
             quad_stack = np.empty((_STACK, 4))
+            quad = np.empty(4, np.int64)
             stack = np.empty((4 * top + 4, 3), np.int64)
             stack[0, 0] = top
             stack[0, 1] = n // tw
@@ -806,11 +822,19 @@ def _band_kernels(kind: int):
                     continue
                 if node[0] != _BIG_LO:
                     count = _emit_mask(node, keys, count, fill, seen)
-                elif lvl == 0:
-                    count = quad_tiles(
-                        rng, j, i, params, table, R, t, eps0, eps1, falloff, margin, h,
-                        T, fill, keys, count, seen, corners, box, quad_stack,
-                    )  # fmt: skip
+                elif lvl == 0:  # its 2 x 2 quads, one by one
+                    for qv in range(2 * i, min(2 * i + 2, nqv)):
+                        for qu in range(2 * j, min(2 * j + 2, nqu)):
+                            quad_node(rng, ranges, qu, qv, max_disc, quad)
+                            if quad[3] == 0:
+                                continue
+                            if quad[0] != _BIG_LO:
+                                count = _emit_mask(quad, keys, count, fill, seen)
+                                continue
+                            count = quad_tiles(
+                                rng, qu, qv, params, table, R, t, eps0, eps1, falloff, margin,
+                                h, T, fill, keys, count, seen, corners, box, quad_stack,
+                            )  # fmt: skip
                 else:
                     for di in range(2):
                         for dj in range(2):
@@ -840,8 +864,9 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
         rng, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff, margin, h, T,
         ranges,
     )  # fmt: skip
-    # the node pyramid: quads, then 2 x 2 merges up to at most _TOP_NODES nodes
-    shapes = [(rng.shape[0] - 1, int(quad_columns(scan.kind, scan.params)))]
+    # the node pyramid: nodes of 2 x 2 quads, then 2 x 2 merges up to _TOP_NODES nodes
+    nqu = int(quad_columns(scan.kind, scan.params))
+    shapes = [(-(-(rng.shape[0] - 1) // 2), -(-nqu // 2))]
     while shapes[-1][0] * shapes[-1][1] > _TOP_NODES:
         shapes.append((-(-shapes[-1][0] // 2), -(-shapes[-1][1] // 2)))
     sizes = np.array([a * b for a, b in shapes], np.int64)
@@ -857,8 +882,8 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
     level_h = np.array([a for a, _ in shapes], np.int64)
     level_w = np.array([b for _, b in shapes], np.int64)
     args = (
-        rng, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff, margin, h, T,
-        nodes, level_off, level_h, level_w,
+        rng, ranges, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff,
+        scan.max_disc, margin, h, T, nodes, level_off, level_h, level_w,
     )  # fmt: skip
     counts = np.zeros(int(sizes[-1]), np.int64)
     band_tiles(*args, False, counts, np.zeros((0, 3), np.int64))
