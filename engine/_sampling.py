@@ -16,7 +16,7 @@ from numba import njit, prange
 
 from . import _sensor_kernels as _k
 from ._sensor_kernels import P_H, P_W, in_image, wraps
-from .certainty import contribution
+from .certainty import SHAPE_LINEAR, contribution
 
 #: Quads per side of a block of the finest level of the statistics the tile tests read.
 QUAD_BLOCK = 4
@@ -137,6 +137,10 @@ def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out):
             out[qv, qu, 1] = behind + _BOUND_SLACK * (1.0 + abs(behind))
 
 
+#: Bounds that :func:`point_contribution` does not read.
+NO_BOUNDS = np.zeros((0, 0, 2), np.float32)
+
+
 def quad_bounds_array(kind, params, rng, eps0, eps1, falloff, max_disc) -> np.ndarray:
     """:func:`quad_bounds` of a prepared range map, float32 (H - 1, quad_columns, 2)."""
     out = np.empty((rng.shape[0] - 1, quad_columns(kind, params), 2), np.float32)
@@ -208,14 +212,24 @@ def block_pyramid(bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 @njit(cache=True, inline="always")
 def point_contribution(
-    kind, shape, params, table, rng, max_disc, eps0, eps1, rho, falloff, q_rho, px, py, pz
-):
+    kind, shape, params, table, rng, bounds, max_disc, eps0, eps1, rho, falloff, q_rho, px, py,
+    pz,
+):  # fmt: skip
     """One scan's quantised ``logit(C)`` at a point of the sensor frame (METHOD §1), and
-    whether the point is informed: projection, bilinear range, certainty. The fusion and
-    the edge-refinement kernels both evaluate scans through this one function."""
+    whether the point is informed: projection, bilinear range, certainty. A point that the
+    scan's per-quad ``bounds`` (:func:`quad_bounds`) settle as free space or as out of reach
+    is not interpolated; empty ``bounds`` (shape (0, 0, 2)) skip that test, for callers
+    whose points are mostly near the surface. The fusion and the edge-refinement kernels
+    both evaluate scans through this one function."""
     u, v, d = _k.project_point(kind, params, table, px, py, pz)
-    if u != u:
+    if u != u or not in_image(kind, params, u, v):
         return np.int64(0), False
+    if bounds.shape[0]:
+        qu, qv = quad_origin(kind, params, u, v)
+        if shape == SHAPE_LINEAR and d < bounds[qv, qu, 0]:
+            return q_rho, True
+        if d > bounds[qv, qu, 1]:
+            return np.int64(0), False
     r, ok = sample_range(kind, params, rng, u, v, max_disc)
     if not ok:
         return np.int64(0), False

@@ -22,9 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
-from . import _sensor_kernels as _k
-from ._sampling import quad_bounds_array, quad_origin, sample_range
-from .certainty import SHAPE_LINEAR, contribution, pack
+from ._sampling import point_contribution, quad_bounds_array
+from .certainty import pack
 from .errors import InvalidInputError, ScanNotFoundError
 from .grid import GridSpec, pack_keys, unique_keys
 from .meshing import Mesh, extract_mesh
@@ -45,7 +44,6 @@ def _integrate_kernel(kind: int, shape: int):
     the other models from the innermost loop (about 4x faster than one kernel that tests
     them per voxel).
     """
-    linear = shape == SHAPE_LINEAR
 
     @njit(cache=True, parallel=True)
     def integrate(
@@ -55,9 +53,7 @@ def _integrate_kernel(kind: int, shape: int):
         # Add ``sign`` times one scan's contribution to the tiles ``data[rows]``;
         # ``informed[row]`` receives the number of voxels of each tile the scan informs.
         # A tile with ``free[n]`` is known to be free space throughout (classify_tiles):
-        # every voxel receives logit(rho), exactly what the voxel loop would add. In the
-        # voxel loop, a voxel whose quad's bounds (quad_bounds) settle it as free space or
-        # as behind the band is not interpolated.
+        # every voxel receives logit(rho), exactly what the voxel loop would add.
         free_value = sign * pack(q_rho)
         for n in prange(rows.shape[0]):
             row = rows[n]
@@ -84,20 +80,10 @@ def _integrate_kernel(kind: int, shape: int):
                         px = bx + M[0, 2] * z
                         py = by + M[1, 2] * z
                         pz = bz + M[2, 2] * z
-                        u, v, d = _k.project_point(kind, params, table, px, py, pz)
-                        if u != u or not _k.in_image(kind, params, u, v):
-                            continue
-                        qu, qv = quad_origin(kind, params, u, v)
-                        if linear and d < bounds[qv, qu, 0]:
-                            data[row, a, b, cc] += free_value
-                            count += 1
-                            continue
-                        if d > bounds[qv, qu, 1]:
-                            continue
-                        r, ok = sample_range(kind, params, rng, u, v, max_disc)
-                        if not ok:
-                            continue
-                        q, inf = contribution(d - r, r, eps0, eps1, rho, falloff, shape, q_rho)
+                        q, inf = point_contribution(
+                            kind, shape, params, table, rng, bounds, max_disc, eps0, eps1, rho,
+                            falloff, q_rho, px, py, pz,
+                        )  # fmt: skip
                         if inf:
                             data[row, a, b, cc] += sign * pack(q)
                             count += 1
