@@ -171,18 +171,20 @@ def _box_distance(lo, hi, p):
 
 
 @functools.cache
-def _box_classifier(kind: int):
-    """``classify_box(lo, hi, ...)``: how a scan sees the world box ``[lo, hi]`` of voxel
-    centres (``OUT``, ``PARTIAL`` or ``FREE``, as :func:`classify_tiles` says), compiled for
-    one sensor kind."""
+def _classify_kernel(kind: int):
+    """Tile classification compiled for one sensor kind (see :func:`classify_tiles`)."""
     pointlike = kind in (_k.PINHOLE, _k.ORTHOGRAPHIC)
 
     @njit(cache=True)
-    def classify_box(
-        lo, hi, M, c, o_W, params, table, reach, free, levels, reach_max, nqu, nqv, linear, acc
-    ):
+    def classify(
+        key, T, halo, h, M, c, o_W, params, table, reach, free, levels, reach_max, nqu, nqv,
+        linear, lo, hi, acc,
+    ):  # fmt: skip
         W = params[_k.P_W]
         H = params[_k.P_H]
+        for a in range(3):  # box of the tile's voxel centres (and halo), world frame
+            lo[a] = (key[a] * T + 0.5) * h
+            hi[a] = ((key[a] + 1) * T - 0.5 + halo) * h
         # farthest voxel centre: every range convention is convex, so at a corner
         d_max = -np.inf
         for corner in range(8):
@@ -299,27 +301,6 @@ def _box_classifier(kind: int):
         if linear and inside_u and inside_v and d_max < acc[1] - _DIST_SLACK:
             return FREE
         return PARTIAL
-
-    return classify_box
-
-
-@functools.cache
-def _classify_kernel(kind: int):
-    """Tile classification compiled for one sensor kind (see :func:`classify_tiles`)."""
-    classify_box = _box_classifier(kind)
-
-    @njit(cache=True)
-    def classify(
-        key, T, halo, h, M, c, o_W, params, table, reach, free, levels, reach_max, nqu, nqv,
-        linear, lo, hi, acc,
-    ):  # fmt: skip
-        for a in range(3):  # box of the tile's voxel centres (and halo), world frame
-            lo[a] = (key[a] * T + 0.5) * h
-            hi[a] = ((key[a] + 1) * T - 0.5 + halo) * h
-        return classify_box(
-            lo, hi, M, c, o_W, params, table, reach, free, levels, reach_max, nqu, nqv, linear,
-            acc,
-        )  # fmt: skip
 
     @njit(cache=True, parallel=True)
     def classify_many(
