@@ -148,6 +148,18 @@ def quad_bounds_array(kind, params, rng, eps0, eps1, falloff, max_disc) -> np.nd
     return out
 
 
+def pyramid_levels(rows: int, cols: int, top_nodes: int = 1) -> np.ndarray:
+    """Layout of a pyramid of nodes stored flat, level after level: level 0 has ``rows`` x
+    ``cols`` nodes, each level above covers 2 x 2 nodes of the one below, up to a level of
+    at most ``top_nodes`` nodes. Returns int64 (L, 3): offset, rows, columns per level."""
+    shapes = [(rows, cols)]
+    while shapes[-1][0] * shapes[-1][1] > top_nodes:
+        shapes.append((-(-shapes[-1][0] // 2), -(-shapes[-1][1] // 2)))
+    sizes = [a * b for a, b in shapes]
+    offsets = np.concatenate([[0], np.cumsum(sizes[:-1])]).astype(np.int64)
+    return np.array([(o, a, b) for o, (a, b) in zip(offsets, shapes, strict=True)], np.int64)
+
+
 @njit(cache=True)
 def _blocks_of_quads(bounds, free, reach):
     # level 0 of the pyramid: QUAD_BLOCK x QUAD_BLOCK quads per node
@@ -196,18 +208,14 @@ def block_pyramid(bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     than ``PYRAMID_SPAN`` nodes per side: a superset of its blocks, so the test stays
     conservative, at a bounded cost whatever the rectangle's size.
     """
-    shapes = [(-(-bounds.shape[0] // QUAD_BLOCK), -(-bounds.shape[1] // QUAD_BLOCK))]
-    while max(shapes[-1]) > 1:
-        shapes.append((-(-shapes[-1][0] // 2), -(-shapes[-1][1] // 2)))
-    sizes = [a * b for a, b in shapes]
-    offsets = np.concatenate([[0], np.cumsum(sizes[:-1])]).astype(np.int64)
-    levels = np.array([(o, a, b) for o, (a, b) in zip(offsets, shapes, strict=True)], np.int64)
-    free = np.empty(int(sum(sizes)))
-    reach = np.empty(int(sum(sizes)))
+    levels = pyramid_levels(-(-bounds.shape[0] // QUAD_BLOCK), -(-bounds.shape[1] // QUAD_BLOCK))
+    size = int(levels[-1, 0] + levels[-1, 1] * levels[-1, 2])
+    free = np.empty(size)
+    reach = np.empty(size)
     _blocks_of_quads(bounds, free, reach)
-    for level in range(1, len(shapes)):
+    for level in range(1, len(levels)):
         _reduce_level(free, reach, levels, level)
-    return free, reach, levels.reshape(-1, 3)
+    return free, reach, levels
 
 
 @njit(cache=True, inline="always")

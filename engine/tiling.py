@@ -38,7 +38,14 @@ import numpy as np
 from numba import njit, prange
 
 from . import _sensor_kernels as _k
-from ._sampling import PYRAMID_SPAN, QUAD_BLOCK, quad_columns, quad_ranges, widened
+from ._sampling import (
+    PYRAMID_SPAN,
+    QUAD_BLOCK,
+    pyramid_levels,
+    quad_columns,
+    quad_ranges,
+    widened,
+)
 from .certainty import SHAPE_LINEAR
 from .defaults import BAND_MARGIN_VOX
 from .grid import GridSpec, unique_keys
@@ -454,10 +461,15 @@ def _emit(rng6, keys, count, fill, seen):
 
 
 @njit(cache=True, inline="always")
-def _reset(box):
+def _box_of(corners, box):
+    """The box (x0, y0, z0, x1, y1, z1) of the 8 points ``corners``, into ``box``."""
     for ax in range(3):
         box[ax] = np.inf
         box[3 + ax] = -np.inf
+    for k in range(8):
+        for ax in range(3):
+            box[ax] = min(box[ax], corners[k, ax])
+            box[3 + ax] = max(box[3 + ax], corners[k, ax])
 
 
 def _overflow_masks() -> np.ndarray:
@@ -536,9 +548,11 @@ def _merge(children, n, out):
 
 
 @njit(cache=True, parallel=True)
-def _merge_level(child, ch, cw, parent, ph, pw):
-    """One level up the node pyramid of :func:`tiles_touched` (see :func:`_merge`): each
-    parent node covers 2 x 2 child nodes."""
+def _merge_level(nodes, levels, level):
+    """Level ``level`` of the node pyramid of :func:`tiles_touched` from the one below (see
+    :func:`_merge`): each node covers 2 x 2 nodes (layout: ``_sampling.pyramid_levels``)."""
+    src, ch, cw = levels[level - 1]
+    dst, ph, pw = levels[level]
     for i in prange(ph):
         children = np.empty((4, 4), np.int64)
         for j in range(pw):
@@ -546,9 +560,9 @@ def _merge_level(child, ch, cw, parent, ph, pw):
             for di in range(2):
                 for dj in range(2):
                     if 2 * i + di < ch and 2 * j + dj < cw:
-                        children[n] = child[(2 * i + di) * cw + 2 * j + dj]
+                        children[n] = nodes[src + (2 * i + di) * cw + 2 * j + dj]
                         n += 1
-            _merge(children, n, parent[i * pw + j])
+            _merge(children, n, nodes[dst + i * pw + j])
 
 
 @njit(cache=True, inline="always")
@@ -690,11 +704,7 @@ def _band_kernels(kind: int):
                 fu = a1 if k & 1 else a0
                 fv = b1 if k >> 1 else b0
                 world(R, t, params, table, qu + fu, qv + fv, d1, corners, 4 + k)
-            _reset(box)
-            for k in range(8):
-                for ax in range(3):
-                    box[ax] = min(box[ax], corners[k, ax])
-                    box[3 + ax] = max(box[3 + ax], corners[k, ax])
+            _box_of(corners, box)
             count = _emit(_tile_range(box, h, T), keys, count, fill, seen)
             for k in range(4):
                 for ax in range(3):
@@ -706,7 +716,8 @@ def _band_kernels(kind: int):
         rng, qu, qv, params, table, R, t, eps0, eps1, falloff, margin, h, T, fill, keys, count,
         seen, corners, box, stack,
     ):  # fmt: skip
-        # Cover the band of one valid quad whose box spans more than two tiles on an axis:
+        # Cover the band of one valid quad whose box spans more than _SPAN tiles on an axis
+        # with boxes spanning at most two:
         # halve the quad across its wider side while the piece is wider than half a tile,
         # then cover each narrow piece by slabs of its range interval (the band across a
         # depth step, or seen edge-on, is long and thin).
@@ -725,11 +736,7 @@ def _band_kernels(kind: int):
                 rng, qu, qv, a0, a1, b0, b1, params, table, R, t, eps0, eps1, falloff, margin,
                 corners,
             )  # fmt: skip
-            _reset(box)
-            for k in range(8):
-                for ax in range(3):
-                    box[ax] = min(box[ax], corners[k, ax])
-                    box[3 + ax] = max(box[3 + ax], corners[k, ax])
+            _box_of(corners, box)
             span = _tile_range(box, h, T)
             if span[3] - span[0] <= 1 and span[4] - span[1] <= 1 and span[5] - span[2] <= 1:
                 count = _emit(span, keys, count, fill, seen)
@@ -771,16 +778,16 @@ def _band_kernels(kind: int):
     @njit(cache=True, parallel=True)
     def band_tiles(
         rng, ranges, params, table, R, t, eps0, eps1, falloff, max_disc, margin, h, T, nodes,
-        level_off, level_h, level_w, fill, offsets, keys,
+        levels, fill, offsets, keys,
     ):  # fmt: skip
         # Walk the node pyramid from each top node: a masked node emits its tiles, a big one
         # is opened (a big quad is covered by quad_tiles). Count first (fill False: the
         # number of keys of each top node into offsets), then fill from those offsets.
-        top = level_off.shape[0] - 1
-        tw = level_w[top]
+        top = levels.shape[0] - 1
+        tw = levels[top, 2]
         nqv = rng.shape[0] - 1
         nqu = quad_columns(kind, params)
-        n_top = level_h[top] * tw
+        n_top = levels[top, 1] * tw
         for n in prange(n_top):
             count = offsets[n]
             seen = np.full((_SEEN, 3), np.iinfo(np.int64).min, np.int64)
@@ -798,7 +805,7 @@ def _band_kernels(kind: int):
                 lvl = stack[depth, 0]
                 i = stack[depth, 1]
                 j = stack[depth, 2]
-                node = nodes[level_off[lvl] + i * level_w[lvl] + j]
+                node = nodes[levels[lvl, 0] + i * levels[lvl, 2] + j]
                 if node[3] == 0:
                     continue
                 if node[0] != _BIG_LO:
@@ -821,7 +828,7 @@ def _band_kernels(kind: int):
                         for dj in range(2):
                             ci = 2 * i + di
                             cj = 2 * j + dj
-                            if ci < level_h[lvl - 1] and cj < level_w[lvl - 1]:
+                            if ci < levels[lvl - 1, 1] and cj < levels[lvl - 1, 2]:
                                 stack[depth, 0] = lvl - 1
                                 stack[depth, 1] = ci
                                 stack[depth, 2] = cj
@@ -847,26 +854,16 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
     )  # fmt: skip
     # the node pyramid: nodes of 2 x 2 quads, then 2 x 2 merges up to _TOP_NODES nodes
     nqu = int(quad_columns(scan.kind, scan.params))
-    shapes = [(-(-(rng.shape[0] - 1) // 2), -(-nqu // 2))]
-    while shapes[-1][0] * shapes[-1][1] > _TOP_NODES:
-        shapes.append((-(-shapes[-1][0] // 2), -(-shapes[-1][1] // 2)))
-    sizes = np.array([a * b for a, b in shapes], np.int64)
-    level_off = np.zeros(len(shapes), np.int64)
-    np.cumsum(sizes[:-1], out=level_off[1:])
-    nodes = np.empty((int(sizes.sum()), 4), np.int64)
+    levels = pyramid_levels(-(-(rng.shape[0] - 1) // 2), -(-nqu // 2), _TOP_NODES)
+    nodes = np.empty((int(levels[-1, 0] + levels[-1, 1] * levels[-1, 2]), 4), np.int64)
     quad_nodes(rng, ranges, scan.params, scan.max_disc, nodes)
-    for lvl in range(1, len(shapes)):
-        (ch, cw), (ph, pw) = shapes[lvl - 1], shapes[lvl]
-        child = nodes[level_off[lvl - 1] : level_off[lvl - 1] + sizes[lvl - 1]]
-        parent = nodes[level_off[lvl] : level_off[lvl] + sizes[lvl]]
-        _merge_level(child, ch, cw, parent, ph, pw)
-    level_h = np.array([a for a, _ in shapes], np.int64)
-    level_w = np.array([b for _, b in shapes], np.int64)
+    for level in range(1, len(levels)):
+        _merge_level(nodes, levels, level)
     args = (
         rng, ranges, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff,
-        scan.max_disc, margin, h, T, nodes, level_off, level_h, level_w,
+        scan.max_disc, margin, h, T, nodes, levels,
     )  # fmt: skip
-    counts = np.zeros(int(sizes[-1]), np.int64)
+    counts = np.zeros(int(levels[-1, 1] * levels[-1, 2]), np.int64)
     band_tiles(*args, False, counts, np.zeros((0, 3), np.int64))
     offsets = np.zeros(len(counts), np.int64)
     np.cumsum(counts[:-1], out=offsets[1:])
