@@ -1,10 +1,13 @@
 """Range-map sampling inside kernels (METHOD.md §1, "Exact conventions").
 
-``sample_range`` is the single definition of "the interpolated range at
-``(u, v)``": bilinear over the four pixels around the point, all four valid,
-optionally within ``max_disc`` metres of each other. Every kernel that asks
-whether a point is informed (fusion, the view test through ``quad_reach``,
-edge refinement) goes through it or through the same quad definition.
+The interpolated range at ``(u, v)`` is bilinear over the four pixels of the quad
+around the point (:func:`bilinear`), and the point gets information only when all
+four are valid, optionally within ``max_disc`` metres of each other
+(:func:`quad_ranges`). :func:`sample_range` puts the two together for one point
+(edge refinement, through :func:`point_contribution`); the fusion kernel reads
+the same quad validity from :func:`quad_bounds` (an invalid quad reaches
+nothing) and then calls :func:`bilinear`; the tile tests read the bounds'
+pyramid. One definition, three ways in.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from numba import njit, prange
 
 from . import _sensor_kernels as _k
 from ._sensor_kernels import P_H, P_W, in_image, wraps
-from .certainty import SHAPE_LINEAR, contribution
+from .certainty import contribution
 
 #: Quads per side of a block of the finest level of the statistics the tile tests read.
 QUAD_BLOCK = 4
@@ -47,15 +50,28 @@ def quad_origin(kind, params, u, v):
 
 
 @njit(cache=True, inline="always")
-def sample_range(kind, params, rng, u, v, max_disc):
-    """Bilinear range at ``(u, v)`` and whether the point gets information.
+def quad_index(kind, params, u, v):
+    """Flat index ``qv * quad_columns + qu`` of the quad that holds ``(u, v)``, or -1 when
+    ``(u, v)`` is not in the image (NaN included): :func:`in_image` and :func:`quad_origin`
+    in one, written without branches so that loops calling it vectorise."""
+    W = params[P_W]
+    H = params[P_H]
+    if wraps(kind, params):
+        inside = (v >= 0.0) & (v <= H - 1.0) & (u >= 0.0) & (u < W)
+        u_cap = W - 1.0
+    else:
+        inside = (v >= 0.0) & (v <= H - 1.0) & (u >= 0.0) & (u <= W - 1.0)
+        u_cap = W - 2.0
+    # truncation is floor here: both are clamped to be >= 0
+    qu = np.int64(min(max(u, 0.0), u_cap))
+    qv = np.int64(min(max(v, 0.0), H - 2.0))
+    return qv * quad_columns(kind, params) + qu if inside else np.int64(-1)
 
-    ``rng`` is a prepared range map: finite values and NaN (no-return pixels already
-    converted). ``max_disc < 0`` disables the depth-discontinuity test.
-    """
-    if not in_image(kind, params, u, v):
-        return math.nan, False
-    qu, qv = quad_origin(kind, params, u, v)
+
+@njit(cache=True, inline="always")
+def bilinear(rng, qu, qv, u, v):
+    """Bilinear range at ``(u, v)`` in quad ``(qu, qv)`` (columns wrap), the quad known to
+    be valid."""
     qu1 = qu + 1
     if qu1 == rng.shape[1]:
         qu1 = 0
@@ -65,18 +81,25 @@ def sample_range(kind, params, rng, u, v, max_disc):
     r01 = rng[qv, qu1]
     r10 = rng[qv + 1, qu]
     r11 = rng[qv + 1, qu1]
-    if math.isnan(r00) or math.isnan(r01) or math.isnan(r10) or math.isnan(r11):
+    return (1.0 - fv) * ((1.0 - fu) * r00 + fu * r01) + fv * ((1.0 - fu) * r10 + fu * r11)
+
+
+@njit(cache=True, inline="always")
+def sample_range(kind, params, rng, u, v, max_disc):
+    """Bilinear range at ``(u, v)`` and whether the point gets information.
+
+    ``rng`` is a prepared range map: finite values and NaN (no-return pixels already
+    converted). ``max_disc < 0`` disables the depth-discontinuity test.
+    """
+    if not in_image(kind, params, u, v):
         return math.nan, False
-    if max_disc >= 0.0:
-        lo = min(min(r00, r01), min(r10, r11))
-        hi = max(max(r00, r01), max(r10, r11))
-        if hi - lo > max_disc:
-            return math.nan, False
-    r = (1.0 - fv) * ((1.0 - fu) * r00 + fu * r01) + fv * ((1.0 - fu) * r10 + fu * r11)
-    return r, True
+    qu, qv = quad_origin(kind, params, u, v)
+    if not quad_ranges(rng, qu, qv, max_disc)[4]:
+        return math.nan, False
+    return bilinear(rng, qu, qv, u, v), True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def quad_ranges(rng, qu, qv, max_disc):
     """The four corner ranges of a quad (wrapping columns), and whether it informs anything."""
     qu1 = qu + 1
@@ -135,10 +158,6 @@ def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out):
             behind = hi + eps + f
             out[qv, qu, 0] = free - _BOUND_SLACK * (1.0 + abs(free))
             out[qv, qu, 1] = behind + _BOUND_SLACK * (1.0 + abs(behind))
-
-
-#: Bounds that :func:`point_contribution` does not read.
-NO_BOUNDS = np.zeros((0, 0, 2), np.float32)
 
 
 def quad_bounds_array(kind, params, rng, eps0, eps1, falloff, max_disc) -> np.ndarray:
@@ -220,24 +239,16 @@ def block_pyramid(bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 @njit(cache=True, inline="always")
 def point_contribution(
-    kind, shape, params, table, rng, bounds, max_disc, eps0, eps1, rho, falloff, q_rho, px, py,
-    pz,
-):  # fmt: skip
+    kind, shape, params, table, rng, max_disc, eps0, eps1, rho, falloff, q_rho, px, py, pz
+):
     """One scan's quantised ``logit(C)`` at a point of the sensor frame (METHOD §1), and
-    whether the point is informed: projection, bilinear range, certainty. A point that the
-    scan's per-quad ``bounds`` (:func:`quad_bounds`) settle as free space or as out of reach
-    is not interpolated; empty ``bounds`` (shape (0, 0, 2)) skip that test, for callers
-    whose points are mostly near the surface. The fusion and the edge-refinement kernels
-    both evaluate scans through this one function."""
+    whether the point is informed: projection, bilinear range, certainty. Edge refinement
+    evaluates its samples through it; the fusion kernel runs the same steps in passes over a
+    tile (``engine.fusion``), through the same :func:`quad_index`/:func:`quad_origin`,
+    :func:`bilinear` and ``contribution``."""
     u, v, d = _k.project_point(kind, params, table, px, py, pz)
-    if u != u or not in_image(kind, params, u, v):
+    if u != u:
         return np.int64(0), False
-    if bounds.shape[0]:
-        qu, qv = quad_origin(kind, params, u, v)
-        if shape == SHAPE_LINEAR and d < bounds[qv, qu, 0]:
-            return q_rho, True
-        if d > bounds[qv, qu, 1]:
-            return np.int64(0), False
     r, ok = sample_range(kind, params, rng, u, v, max_disc)
     if not ok:
         return np.int64(0), False

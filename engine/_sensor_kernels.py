@@ -143,7 +143,7 @@ def project_point(kind, params, table, x, y, z):
     return x / params[P_SX] + params[P_OCX], y / params[P_SY] + params[P_OCY], z
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def distance(kind, params, x, y, z):
     """The range ``d`` of a sensor-frame point in the sensor's convention (pixel or not)."""
     if kind == PINHOLE:
@@ -159,7 +159,7 @@ def distance(kind, params, x, y, z):
     return z
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def unproject_point(kind, params, table, u, v, d):
     """(u, v, d) -> sensor-frame point; nan where no point has that range."""
     nan = math.nan

@@ -149,17 +149,17 @@ class NoiseModel:
         return NoiseModel(**data)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def logit(c):
     return math.log(c / (1.0 - c))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def quantise(x):
     return np.int64(math.floor(x * LOGIT_SCALE + 0.5))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def certainty(alpha, eps, falloff, rho, shape):
     """C(alpha) for ``alpha <= eps + falloff`` (the caller tests that the point is informed)."""
     if shape == SHAPE_LINEAR:
@@ -175,7 +175,7 @@ def certainty(alpha, eps, falloff, rho, shape):
     return c_eps - (c_eps - 0.5) * (alpha - eps) / falloff
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def contribution(alpha, r, eps0, eps1, rho, falloff, shape, q_rho):
     """Quantised ``logit(C)`` of one scan at one point, and whether the point is informed.
 

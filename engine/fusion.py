@@ -22,8 +22,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
-from ._sampling import point_contribution, quad_bounds_array
-from .certainty import pack
+from ._sampling import bilinear, quad_bounds_array, quad_index, quad_origin
+from ._sensor_kernels import project_point
+from .certainty import SHAPE_LINEAR, contribution, pack
 from .errors import InvalidInputError, ScanNotFoundError
 from .grid import GridSpec, pack_keys, unique_keys
 from .meshing import Mesh, extract_mesh
@@ -43,28 +44,55 @@ def _integrate_kernel(kind: int, shape: int):
     ``kind`` and ``shape`` are closure constants, so the compiler drops every branch of
     the other models from the innermost loop (about 4x faster than one kernel that tests
     them per voxel).
-    """
 
-    @njit(cache=True, parallel=True)
+    A tile is fused in passes that each do one kind of work, so that the compiler can
+    vectorise the ones that are plain arithmetic (``error_model="numpy"``: a division by
+    zero gives inf or NaN instead of raising, which would stop the vectoriser):
+
+    1. per line of ``T`` voxels, project every voxel and find its quad (vectorised);
+    2. read the quad's bounds (:func:`engine._sampling.quad_bounds`): free space takes
+       ``logit(rho)`` at once, points beyond the reach nothing; the rest, the band, is
+       queued with its pixel coordinates and distance;
+    3. over the tile's queue: the bilinear range, then the certainty (vectorised), then
+       the additions.
+
+    A queued point's quad is valid (an invalid quad's reach is ``-inf``), so pass 3 needs
+    none of :func:`engine._sampling.sample_range`'s tests: it gives the same values.
+    """
+    linear = shape == SHAPE_LINEAR
+
+    @njit(cache=True, parallel=True, error_model="numpy")
     def integrate(
         keys, data, rows, free, sign, T, h, M, c, params, table, rng, bounds, eps0, eps1, rho,
-        falloff, q_rho, max_disc, informed,
+        falloff, q_rho, informed,
     ):  # fmt: skip
         # Add ``sign`` times one scan's contribution to the tiles ``data[rows]``;
         # ``informed[row]`` receives the number of voxels of each tile the scan informs.
         # A tile with ``free[n]`` is known to be free space throughout (classify_tiles):
         # every voxel receives logit(rho), exactly what the voxel loop would add.
         free_value = sign * pack(q_rho)
+        flat_bounds = bounds.reshape(-1)
+        N = T * T * T
         for n in prange(rows.shape[0]):
             row = rows[n]
+            tile = data[row].reshape(-1)
             if free[n]:
-                for a in range(T):
-                    for b in range(T):
-                        for cc in range(T):
-                            data[row, a, b, cc] += free_value
-                informed[row] = T * T * T
+                for i in range(N):
+                    tile[i] += free_value
+                informed[row] = N
                 continue
+            # one line's projections, then the tile's queue of band points
+            line_u = np.empty(T)
+            line_v = np.empty(T)
+            line_d = np.empty(T)
+            line_q = np.empty(T, np.int64)
+            at = np.empty(N, np.int64)
+            band_u = np.empty(N)
+            band_v = np.empty(N)
+            band_d = np.empty(N)
+            band_r = np.empty(N)
             count = 0
+            queued = 0
             i0 = keys[row, 0] * T
             j0 = keys[row, 1] * T
             k0 = keys[row, 2] * T
@@ -75,18 +103,42 @@ def _integrate_kernel(kind: int, shape: int):
                     bx = M[0, 0] * x + M[0, 1] * y + c[0]
                     by = M[1, 0] * x + M[1, 1] * y + c[1]
                     bz = M[2, 0] * x + M[2, 1] * y + c[2]
-                    for cc in range(T):
+                    for cc in range(T):  # pass 1
                         z = ((k0 + cc) + 0.5) * h
-                        px = bx + M[0, 2] * z
-                        py = by + M[1, 2] * z
-                        pz = bz + M[2, 2] * z
-                        q, inf = point_contribution(
-                            kind, shape, params, table, rng, bounds, max_disc, eps0, eps1, rho,
-                            falloff, q_rho, px, py, pz,
+                        u, v, d = project_point(
+                            kind, params, table, bx + M[0, 2] * z, by + M[1, 2] * z,
+                            bz + M[2, 2] * z,
                         )  # fmt: skip
-                        if inf:
-                            data[row, a, b, cc] += sign * pack(q)
+                        line_u[cc] = u
+                        line_v[cc] = v
+                        line_d[cc] = d
+                        line_q[cc] = quad_index(kind, params, u, v)
+                    base = (a * T + b) * T
+                    for cc in range(T):  # pass 2
+                        q = line_q[cc]
+                        if q < 0:
+                            continue
+                        d = line_d[cc]
+                        if linear and d < flat_bounds[2 * q]:
+                            tile[base + cc] += free_value
                             count += 1
+                        elif d <= flat_bounds[2 * q + 1]:
+                            at[queued] = base + cc
+                            band_u[queued] = line_u[cc]
+                            band_v[queued] = line_v[cc]
+                            band_d[queued] = d
+                            queued += 1
+            for m in range(queued):  # pass 3
+                u = band_u[m]
+                v = band_v[m]
+                qu, qv = quad_origin(kind, params, u, v)
+                band_r[m] = bilinear(rng, qu, qv, u, v)
+            for m in range(queued):
+                r = band_r[m]
+                value, inf = contribution(band_d[m] - r, r, eps0, eps1, rho, falloff, shape, q_rho)
+                if inf:
+                    tile[at[m]] += sign * pack(value)
+                    count += 1
             informed[row] = count
 
     return integrate
@@ -149,7 +201,7 @@ def integrate_seen(
             keys, data, np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(free),
             np.int64(sign), grid.tile_size_vox, grid.voxel_size_m, scan.M, scan.c, scan.params,
             scan.table, scan.range_m, bounds, scan.eps0, scan.eps1, scan.rho,
-            scan.falloff, scan.q_rho, scan.max_disc, informed,
+            scan.falloff, scan.q_rho, informed,
         )  # fmt: skip
     return informed
 

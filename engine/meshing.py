@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit, prange
 
 from ._mc_tables import EDGE_AXIS, EDGE_CORNER, TRI_COUNT, TRI_TABLE
-from ._sampling import NO_BOUNDS, point_contribution
+from ._sampling import point_contribution
 from .certainty import logit, pack, quantise
 from .defaults import COUNT_BITS, REFINE_SAMPLES
 from .errors import InvalidGridError
@@ -333,7 +333,6 @@ def _sample_kernel(kind: int, shape: int):
         params,
         table,
         rng,
-        bounds,
         eps0,
         eps1,
         rho,
@@ -358,7 +357,7 @@ def _sample_kernel(kind: int, shape: int):
             dz = M[2, axis] * step
             for s in range(1, n_samples):
                 q, inf = point_contribution(
-                    kind, shape, params, table, rng, bounds, max_disc, eps0, eps1, rho,
+                    kind, shape, params, table, rng, max_disc, eps0, eps1, rho,
                     falloff, q_rho, p0x + s * dx, p0y + s * dy, p0z + s * dz,
                 )  # fmt: skip
                 if inf:
@@ -435,7 +434,6 @@ def _refine(
             scan.params,
             scan.table,
             scan.range_m,
-            NO_BOUNDS,  # edge samples lie near the surface: bounds would rarely settle one
             scan.eps0,
             scan.eps1,
             scan.rho,

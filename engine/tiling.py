@@ -166,7 +166,7 @@ def _rect_stats(reach, free, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc
     return any_quad
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _box_distance(lo, hi, p):
     s = 0.0
     for a in range(3):
@@ -177,23 +177,37 @@ def _box_distance(lo, hi, p):
     return math.sqrt(s)
 
 
-@functools.cache
-def _classify_kernel(kind: int):
-    """Tile classification compiled for one sensor kind (see :func:`classify_tiles`)."""
-    pointlike = kind in (_k.PINHOLE, _k.ORTHOGRAPHIC)
-
-    @njit(cache=True)
-    def classify(
-        key, T, halo, h, M, c, o_W, params, table, reach, free, levels, reach_max, nqu, nqv,
-        linear, lo, hi, acc,
-    ):  # fmt: skip
-        W = params[_k.P_W]
-        H = params[_k.P_H]
-        for a in range(3):  # box of the tile's voxel centres (and halo), world frame
-            lo[a] = (key[a] * T + 0.5) * h
-            hi[a] = ((key[a] + 1) * T - 0.5 + halo) * h
-        # farthest voxel centre: every range convention is convex, so at a corner
-        d_max = -np.inf
+@njit(cache=True)
+def _classify_tile(
+    kind, key, T, halo, h, M, c, o_W, params, table, reach, free, levels, reach_max, nqu, nqv,
+    linear, lo, hi, acc,
+):  # fmt: skip
+    # How the scan sees one tile (see classify_tiles).
+    W = params[_k.P_W]
+    H = params[_k.P_H]
+    for a in range(3):  # box of the tile's voxel centres (and halo), world frame
+        lo[a] = (key[a] * T + 0.5) * h
+        hi[a] = ((key[a] + 1) * T - 0.5 + halo) * h
+    # farthest voxel centre: every range convention is convex, so at a corner
+    d_max = -np.inf
+    for corner in range(8):
+        x = hi[0] if corner & 1 else lo[0]
+        y = hi[1] if corner & 2 else lo[1]
+        z = hi[2] if corner & 4 else lo[2]
+        px = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + c[0]
+        py = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + c[1]
+        pz = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + c[2]
+        d_max = max(d_max, _k.distance(kind, params, px, py, pz))
+    full_u = False
+    full_v = False
+    u_lo = np.inf
+    u_hi = -np.inf
+    v_lo = np.inf
+    v_hi = -np.inf
+    ring = 0.0
+    if kind == _k.PINHOLE or kind == _k.ORTHOGRAPHIC:  # point-like centre of projection
+        d_min = np.inf
+        z_max = -np.inf
         for corner in range(8):
             x = hi[0] if corner & 1 else lo[0]
             y = hi[1] if corner & 2 else lo[1]
@@ -201,113 +215,100 @@ def _classify_kernel(kind: int):
             px = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + c[0]
             py = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + c[1]
             pz = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + c[2]
-            d_max = max(d_max, _k.distance(kind, params, px, py, pz))
-        full_u = False
-        full_v = False
-        u_lo = np.inf
-        u_hi = -np.inf
-        v_lo = np.inf
-        v_hi = -np.inf
-        ring = 0.0
-        if pointlike:
-            d_min = np.inf
-            z_max = -np.inf
-            for corner in range(8):
-                x = hi[0] if corner & 1 else lo[0]
-                y = hi[1] if corner & 2 else lo[1]
-                z = hi[2] if corner & 4 else lo[2]
-                px = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + c[0]
-                py = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + c[1]
-                pz = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + c[2]
-                d_min = min(d_min, pz)
-                z_max = max(z_max, pz)
-                if kind == _k.ORTHOGRAPHIC:
-                    u = px / params[_k.P_SX] + params[_k.P_OCX]
-                    v = py / params[_k.P_SY] + params[_k.P_OCY]
-                elif pz <= 0.0:
-                    full_u = True  # the box reaches behind the camera: no bound
-                    full_v = True
-                    continue
-                else:
-                    u = params[_k.P_FX] * px / pz + params[_k.P_CX]
-                    v = params[_k.P_FY] * py / pz + params[_k.P_CY]
-                u_lo = min(u_lo, u)
-                u_hi = max(u_hi, u)
-                v_lo = min(v_lo, v)
-                v_hi = max(v_hi, v)
-            if z_max < 0.0 or (kind == _k.PINHOLE and z_max <= 0.0):
-                return OUT  # entirely behind the sensor
-            d_min = max(d_min, 0.0)
-            if kind == _k.PINHOLE and params[_k.P_Z_CONV] == 0.0:
-                d_min = _box_distance(lo, hi, o_W)
+            d_min = min(d_min, pz)
+            z_max = max(z_max, pz)
+            if kind == _k.ORTHOGRAPHIC:
+                u = px / params[_k.P_SX] + params[_k.P_OCX]
+                v = py / params[_k.P_SY] + params[_k.P_OCY]
+            elif pz <= 0.0:
+                full_u = True  # the box reaches behind the camera: no bound
+                full_v = True
+                continue
+            else:
+                u = params[_k.P_FX] * px / pz + params[_k.P_CX]
+                v = params[_k.P_FY] * py / pz + params[_k.P_CY]
+            u_lo = min(u_lo, u)
+            u_hi = max(u_hi, u)
+            v_lo = min(v_lo, v)
+            v_hi = max(v_hi, v)
+        if z_max < 0.0 or (kind == _k.PINHOLE and z_max <= 0.0):
+            return OUT  # entirely behind the sensor
+        d_min = max(d_min, 0.0)
+        if kind == _k.PINHOLE and params[_k.P_Z_CONV] == 0.0:
+            d_min = _box_distance(lo, hi, o_W)
+    else:
+        # spherical or cylindrical: bound the tile by its circumscribed sphere
+        radius = 0.5 * math.sqrt(3.0) * (hi[0] - lo[0])
+        cx = 0.5 * (lo[0] + hi[0])
+        cy = 0.5 * (lo[1] + hi[1])
+        cz = 0.5 * (lo[2] + hi[2])
+        sx = M[0, 0] * cx + M[0, 1] * cy + M[0, 2] * cz + c[0]
+        sy = M[1, 0] * cx + M[1, 1] * cy + M[1, 2] * cz + c[1]
+        sz = M[2, 0] * cx + M[2, 1] * cy + M[2, 2] * cz + c[2]
+        rho_c = math.sqrt(sx * sx + sy * sy)
+        dist = math.sqrt(rho_c * rho_c + sz * sz)
+        if kind == _k.CYLINDRICAL and params[_k.P_RADIAL] != 0.0:
+            d_min = max(0.0, rho_c - radius)
         else:
-            # spherical or cylindrical: bound the tile by its circumscribed sphere
-            radius = 0.5 * math.sqrt(3.0) * (hi[0] - lo[0])
-            cx = 0.5 * (lo[0] + hi[0])
-            cy = 0.5 * (lo[1] + hi[1])
-            cz = 0.5 * (lo[2] + hi[2])
-            sx = M[0, 0] * cx + M[0, 1] * cy + M[0, 2] * cz + c[0]
-            sy = M[1, 0] * cx + M[1, 1] * cy + M[1, 2] * cz + c[1]
-            sz = M[2, 0] * cx + M[2, 1] * cy + M[2, 2] * cz + c[2]
-            rho_c = math.sqrt(sx * sx + sy * sy)
-            dist = math.sqrt(rho_c * rho_c + sz * sz)
-            if kind == _k.CYLINDRICAL and params[_k.P_RADIAL] != 0.0:
-                d_min = max(0.0, rho_c - radius)
-            else:
-                d_min = _box_distance(lo, hi, o_W)
-            if rho_c <= radius:
-                full_u = True
-            else:
-                delta = math.asin(radius / rho_c)
-                daz = params[_k.P_DAZ]
-                ring = 2.0 * math.pi / daz
-                a0 = (math.atan2(sy, sx) - delta - params[_k.P_AZ_MIN]) % (2.0 * math.pi)
-                u_lo = a0 / daz
-                u_hi = (a0 + 2.0 * delta) / daz
-            if kind == _k.CYLINDRICAL and params[_k.P_LINEAR] != 0.0:
-                v_lo = params[_k.P_CYL_CY] - params[_k.P_CYL_FY] * (sz + radius)
-                v_hi = params[_k.P_CYL_CY] - params[_k.P_CYL_FY] * (sz - radius)
-            elif dist <= radius:
+            d_min = _box_distance(lo, hi, o_W)
+        if rho_c <= radius:
+            full_u = True
+        else:
+            delta = math.asin(radius / rho_c)
+            daz = params[_k.P_DAZ]
+            ring = 2.0 * math.pi / daz
+            a0 = (math.atan2(sy, sx) - delta - params[_k.P_AZ_MIN]) % (2.0 * math.pi)
+            u_lo = a0 / daz
+            u_hi = (a0 + 2.0 * delta) / daz
+        if kind == _k.CYLINDRICAL and params[_k.P_LINEAR] != 0.0:
+            v_lo = params[_k.P_CYL_CY] - params[_k.P_CYL_FY] * (sz + radius)
+            v_hi = params[_k.P_CYL_CY] - params[_k.P_CYL_FY] * (sz - radius)
+        elif dist <= radius:
+            full_v = True
+        else:
+            theta = math.asin(radius / dist)
+            el_c = math.atan2(sz, rho_c)
+            el_hi = el_c + theta
+            el_lo = el_c - theta
+            if kind == _k.SPHERICAL:
+                if params[_k.P_HAS_TABLE] != 0.0:
+                    v_lo = _k._row_from_table(table, el_hi)
+                    v_hi = _k._row_from_table(table, el_lo)
+                else:
+                    v_lo = (params[_k.P_EL_MAX] - el_hi) / params[_k.P_DEL]
+                    v_hi = (params[_k.P_EL_MAX] - el_lo) / params[_k.P_DEL]
+            elif el_hi >= 0.5 * math.pi or el_lo <= -0.5 * math.pi:
                 full_v = True
             else:
-                theta = math.asin(radius / dist)
-                el_c = math.atan2(sz, rho_c)
-                el_hi = el_c + theta
-                el_lo = el_c - theta
-                if kind == _k.SPHERICAL:
-                    if params[_k.P_HAS_TABLE] != 0.0:
-                        v_lo = _k._row_from_table(table, el_hi)
-                        v_hi = _k._row_from_table(table, el_lo)
-                    else:
-                        v_lo = (params[_k.P_EL_MAX] - el_hi) / params[_k.P_DEL]
-                        v_hi = (params[_k.P_EL_MAX] - el_lo) / params[_k.P_DEL]
-                elif el_hi >= 0.5 * math.pi or el_lo <= -0.5 * math.pi:
-                    full_v = True
-                else:
-                    v_lo = params[_k.P_CYL_CY] - params[_k.P_CYL_FY] * math.tan(el_hi)
-                    v_hi = params[_k.P_CYL_CY] - params[_k.P_CYL_FY] * math.tan(el_lo)
-        if d_min - _DIST_SLACK > reach_max:
-            return OUT
-        wraps = _k.wraps(kind, params)
-        if full_u:
-            u_lo = 0.0
-            u_hi = float(nqu)
-            ring = 0.0
-        if full_v:
-            v_lo = 0.0
-            v_hi = float(nqv)
-        if not _rect_stats(reach, free, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
-            return OUT
-        if acc[0] < d_min - _DIST_SLACK:
-            return OUT
-        # every voxel centre projects inside the image, onto valid quads, in front of the band?
-        inside_u = wraps or (
-            not full_u and u_lo - _PIXEL_SLACK >= 0.0 and u_hi + _PIXEL_SLACK <= W - 1.0
-        )
-        inside_v = not full_v and v_lo - _PIXEL_SLACK >= 0.0 and v_hi + _PIXEL_SLACK <= H - 1.0
-        if linear and inside_u and inside_v and d_max < acc[1] - _DIST_SLACK:
-            return FREE
-        return PARTIAL
+                v_lo = params[_k.P_CYL_CY] - params[_k.P_CYL_FY] * math.tan(el_hi)
+                v_hi = params[_k.P_CYL_CY] - params[_k.P_CYL_FY] * math.tan(el_lo)
+    if d_min - _DIST_SLACK > reach_max:
+        return OUT
+    wraps = _k.wraps(kind, params)
+    if full_u:
+        u_lo = 0.0
+        u_hi = float(nqu)
+        ring = 0.0
+    if full_v:
+        v_lo = 0.0
+        v_hi = float(nqv)
+    if not _rect_stats(reach, free, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
+        return OUT
+    if acc[0] < d_min - _DIST_SLACK:
+        return OUT
+    # every voxel centre projects inside the image, onto valid quads, in front of the band?
+    inside_u = wraps or (
+        not full_u and u_lo - _PIXEL_SLACK >= 0.0 and u_hi + _PIXEL_SLACK <= W - 1.0
+    )
+    inside_v = not full_v and v_lo - _PIXEL_SLACK >= 0.0 and v_hi + _PIXEL_SLACK <= H - 1.0
+    if linear and inside_u and inside_v and d_max < acc[1] - _DIST_SLACK:
+        return FREE
+    return PARTIAL
+
+
+@functools.cache
+def _classify_kernel(kind: int):
+    """Tile classification compiled for one sensor kind (see :func:`classify_tiles`)."""
 
     @njit(cache=True, parallel=True)
     def classify_many(
@@ -333,7 +334,8 @@ def _classify_kernel(kind: int):
             lo = np.empty(3)
             hi = np.empty(3)
             acc = np.empty(3)
-            out[n] = classify(
+            out[n] = _classify_tile(
+                kind,
                 keys[n],
                 T,
                 halo,
@@ -419,7 +421,7 @@ def _last_tile(x, h, T):
     return int(math.floor(math.ceil(x * (1.0 / h) - 0.5 - _CENTRE_SLACK) * (1.0 / T)))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _tile_range(box, h, T):
     """Tile index ranges (inclusive) of the voxel centres in a box (x0, y0, z0, x1, y1, z1)
     widened to the next voxel centre outside it on each side (less than a voxel of slack)."""
@@ -450,7 +452,7 @@ def _emit_key(a, b, c, keys, count, fill, seen):
     return count + 1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _emit(rng6, keys, count, fill, seen):
     """Emit the tiles of a key range (see :func:`_emit_key`)."""
     for a in range(rng6[0], rng6[3] + 1):
@@ -576,62 +578,212 @@ def _emit_mask(node, keys, count, fill, seen):
     return count
 
 
+@njit(cache=True, inline="always")
+def _corners_min(ranges, k, qu, qu1, qv):
+    """Smallest of ``ranges[k]`` at the four corners of quad ``(qu, qv)``."""
+    return min(
+        min(ranges[k, qv, qu], ranges[k, qv, qu1]),
+        min(ranges[k, qv + 1, qu], ranges[k, qv + 1, qu1]),
+    )
+
+
+@njit(cache=True, inline="always")
+def _corners_max(ranges, k, qu, qu1, qv):
+    """Largest of ``ranges[k]`` at the four corners of quad ``(qu, qv)``."""
+    return max(
+        max(ranges[k, qv, qu], ranges[k, qv, qu1]),
+        max(ranges[k, qv + 1, qu], ranges[k, qv + 1, qu1]),
+    )
+
+
+@njit(cache=True, inline="always")
+def _world(kind, R, t, params, table, u, v, d, out, row):
+    x, y, z = _k.unproject_point(kind, params, table, u, v, d)
+    for a in range(3):
+        out[row, a] = R[a, 0] * x + R[a, 1] * y + R[a, 2] * z + t[a]
+
+
+@njit(cache=True, inline="always")
+def _quad_node(kind, rng, ranges, qu, qv, max_disc, out):
+    # the node of one quad (see _merge): the tiles of the box of its band-end points, or
+    # big when it spans more than _SPAN tiles on an axis (quad_tiles covers it)
+    out[0] = 0
+    out[3] = 0
+    if not quad_ranges(rng, qu, qv, max_disc)[4]:
+        return
+    qu1 = qu + 1 if qu + 1 < rng.shape[1] else 0
+    i0 = _corners_min(ranges, 0, qu, qu1, qv)
+    j0 = _corners_min(ranges, 1, qu, qu1, qv)
+    k0 = _corners_min(ranges, 2, qu, qu1, qv)
+    i1 = _corners_max(ranges, 3, qu, qu1, qv)
+    j1 = _corners_max(ranges, 4, qu, qu1, qv)
+    k1 = _corners_max(ranges, 5, qu, qu1, qv)
+    if i1 - i0 >= _SPAN or j1 - j0 >= _SPAN or k1 - k0 >= _SPAN:
+        out[0] = _BIG_LO
+        out[3] = -1
+        return
+    out[0] = i0
+    out[1] = j0
+    out[2] = k0
+    out[3] = _box_mask(i1 - i0 + 1, j1 - j0 + 1, k1 - k0 + 1)
+
+
+@njit(cache=True)
+def _node_points(
+    kind, rng, qu, qv, a0, a1, b0, b1, params, table, R, t, eps0, eps1, falloff, margin, corners
+):
+    # Band-end points of the corners of the sub-quad [a0, a1] x [b0, b1] of quad
+    # (qu, qv): rows 0..3 at the near end, 4..7 at the far end; row k has du = k & 1,
+    # dv = k >> 1. Returns the band's range interval over the sub-quad: both ends are
+    # monotone in the bilinear range, so they are extreme at corners.
+    qu1 = qu + 1 if qu + 1 < rng.shape[1] else 0
+    r00 = rng[qv, qu]
+    r01 = rng[qv, qu1]
+    r10 = rng[qv + 1, qu]
+    r11 = rng[qv + 1, qu1]
+    lo = np.inf
+    hi = -np.inf
+    for k in range(4):
+        fu = a1 if k & 1 else a0
+        fv = b1 if k >> 1 else b0
+        r = (1.0 - fv) * ((1.0 - fu) * r00 + fu * r01) + fv * ((1.0 - fu) * r10 + fu * r11)
+        eps = eps0 + eps1 * r
+        f = falloff if falloff > 0.0 else eps
+        near = max(r - eps - margin, 0.0)
+        far = r + eps + f
+        lo = min(lo, near)
+        hi = max(hi, far)
+        _world(kind, R, t, params, table, qu + fu, qv + fv, near, corners, k)
+        _world(kind, R, t, params, table, qu + fu, qv + fv, far, corners, 4 + k)
+    return lo, hi
+
+
+@njit(cache=True)
+def _slab_tiles(
+    kind, qu, qv, a0, a1, b0, b1, lo, hi, params, table, R, t, h, T, fill, keys, count, seen,
+    corners, box,
+):  # fmt: skip
+    # Cover a narrow piece of the band (its sub-quad is at most half a tile across) that
+    # is long in range: cut the frustum of the sub-quad between ranges lo and hi into
+    # slabs about half a tile long, and emit the tiles of each slab's box.
+    for k in range(4):
+        fu = a1 if k & 1 else a0
+        fv = b1 if k >> 1 else b0
+        _world(kind, R, t, params, table, qu + fu, qv + fv, lo, corners, k)
+        _world(kind, R, t, params, table, qu + fu, qv + fv, hi, corners, 4 + k)
+    length = 0.0
+    for k in range(4):
+        d2 = 0.0
+        for ax in range(3):
+            d2 += (corners[4 + k, ax] - corners[k, ax]) ** 2
+        length = max(length, math.sqrt(d2))
+    n = min(max(int(math.ceil(length / (0.5 * T * h))), 1), _MAX_SLABS)
+    for s in range(1, n + 1):
+        d1 = lo + (hi - lo) * s / n
+        for k in range(4):
+            fu = a1 if k & 1 else a0
+            fv = b1 if k >> 1 else b0
+            _world(kind, R, t, params, table, qu + fu, qv + fv, d1, corners, 4 + k)
+        _box_of(corners, box)
+        count = _emit(_tile_range(box, h, T), keys, count, fill, seen)
+        for k in range(4):
+            for ax in range(3):
+                corners[k, ax] = corners[4 + k, ax]
+    return count
+
+
+@njit(cache=True)
+def _quad_tiles(
+    kind, rng, qu, qv, params, table, R, t, eps0, eps1, falloff, margin, h, T, fill, keys, count,
+    seen, corners, box, stack,
+):  # fmt: skip
+    # Cover the band of one valid quad whose box spans more than _SPAN tiles on an axis
+    # with boxes spanning at most two:
+    # halve the quad across its wider side while the piece is wider than half a tile,
+    # then cover each narrow piece by slabs of its range interval (the band across a
+    # depth step, or seen edge-on, is long and thin).
+    stack[0, 0] = 0.0
+    stack[0, 1] = 1.0
+    stack[0, 2] = 0.0
+    stack[0, 3] = 1.0
+    top = 1
+    while top > 0:
+        top -= 1
+        a0 = stack[top, 0]
+        a1 = stack[top, 1]
+        b0 = stack[top, 2]
+        b1 = stack[top, 3]
+        lo, hi = _node_points(
+            kind, rng, qu, qv, a0, a1, b0, b1, params, table, R, t, eps0, eps1, falloff, margin,
+            corners,
+        )  # fmt: skip
+        _box_of(corners, box)
+        span = _tile_range(box, h, T)
+        if span[3] - span[0] <= 1 and span[4] - span[1] <= 1 and span[5] - span[2] <= 1:
+            count = _emit(span, keys, count, fill, seen)
+            continue
+        # the piece's width across its frustum at the far end of its range interval
+        _world(kind, R, t, params, table, qu + a0, qv + b0, hi, corners, 0)
+        _world(kind, R, t, params, table, qu + a1, qv + b0, hi, corners, 1)
+        _world(kind, R, t, params, table, qu + a0, qv + b1, hi, corners, 2)
+        wide_u = 0.0
+        wide_v = 0.0
+        for ax in range(3):
+            wide_u += (corners[1, ax] - corners[0, ax]) ** 2
+            wide_v += (corners[2, ax] - corners[0, ax]) ** 2
+        if max(wide_u, wide_v) <= (0.5 * T * h) ** 2:
+            count = _slab_tiles(
+                kind, qu, qv, a0, a1, b0, b1, lo, hi, params, table, R, t, h, T, fill, keys,
+                count, seen, corners, box,
+            )  # fmt: skip
+            continue
+        if a1 - a0 < _MIN_PIECE or b1 - b0 < _MIN_PIECE or top + 2 > stack.shape[0]:
+            count = _emit(span, keys, count, fill, seen)
+            continue
+        for half in range(2):
+            stack[top, 0] = a0
+            stack[top, 1] = a1
+            stack[top, 2] = b0
+            stack[top, 3] = b1
+            if wide_u >= wide_v:
+                mid = 0.5 * (a0 + a1)
+                stack[top, 0] = a0 if half == 0 else mid
+                stack[top, 1] = mid if half == 0 else a1
+            else:
+                mid = 0.5 * (b0 + b1)
+                stack[top, 2] = b0 if half == 0 else mid
+                stack[top, 3] = mid if half == 0 else b1
+            top += 1
+    return count
+
+
 @functools.cache
 def _band_kernels(kind: int):
     """Band-allocation kernels compiled for one sensor kind (see :func:`tiles_touched`)."""
 
-    @njit(cache=True, inline="always")
-    def world(R, t, params, table, u, v, d, out, row):
-        x, y, z = _k.unproject_point(kind, params, table, u, v, d)
-        for a in range(3):
-            out[row, a] = R[a, 0] * x + R[a, 1] * y + R[a, 2] * z + t[a]
-
-    @njit(cache=True, parallel=True)
+    @njit(cache=True, parallel=True, error_model="numpy")
     def pixel_ranges(rng, params, table, R, t, eps0, eps1, falloff, margin, h, T, out):
         # tiles (lo_x, lo_y, lo_z, hi_x, hi_y, hi_z) of the box of the two band-end points of
-        # every valid pixel, out (H, W, 6); a quad's box is the union of its corners' boxes
+        # every pixel, out (6, H, W); a quad's box is the union of its corners' boxes. No
+        # branch, so that the loop vectorises: an invalid pixel (NaN) gets meaningless
+        # values, and quad_node reads only the corners of valid quads.
         H, W = rng.shape
         for v in prange(H):
-            ends = np.empty((2, 3))
+            fv = float(v)
             for u in range(W):
                 r = rng[v, u]
-                if math.isnan(r):
-                    continue
                 eps = eps0 + eps1 * r
                 f = falloff if falloff > 0.0 else eps
-                world(R, t, params, table, float(u), float(v), max(r - eps - margin, 0.0), ends, 0)
-                world(R, t, params, table, float(u), float(v), r + eps + f, ends, 1)
+                fu = float(u)
+                x0, y0, z0 = _k.unproject_point(
+                    kind, params, table, fu, fv, max(r - eps - margin, 0.0)
+                )
+                x1, y1, z1 = _k.unproject_point(kind, params, table, fu, fv, r + eps + f)
                 for ax in range(3):
-                    out[v, u, ax] = _first_tile(min(ends[0, ax], ends[1, ax]), h, T)
-                    out[v, u, 3 + ax] = _last_tile(max(ends[0, ax], ends[1, ax]), h, T)
-
-    @njit(cache=True, inline="always")
-    def quad_node(rng, ranges, qu, qv, max_disc, out):
-        # the node of one quad (see _merge): the tiles of the box of its band-end points, or
-        # big when it spans more than _SPAN tiles on an axis (quad_tiles covers it)
-        out[0] = 0
-        out[3] = 0
-        if not quad_ranges(rng, qu, qv, max_disc)[4]:
-            return
-        qu1 = qu + 1 if qu + 1 < rng.shape[1] else 0
-        a = ranges[qv, qu]
-        b = ranges[qv, qu1]
-        c = ranges[qv + 1, qu]
-        d = ranges[qv + 1, qu1]
-        i0 = min(min(a[0], b[0]), min(c[0], d[0]))
-        j0 = min(min(a[1], b[1]), min(c[1], d[1]))
-        k0 = min(min(a[2], b[2]), min(c[2], d[2]))
-        i1 = max(max(a[3], b[3]), max(c[3], d[3]))
-        j1 = max(max(a[4], b[4]), max(c[4], d[4]))
-        k1 = max(max(a[5], b[5]), max(c[5], d[5]))
-        if i1 - i0 >= _SPAN or j1 - j0 >= _SPAN or k1 - k0 >= _SPAN:
-            out[0] = _BIG_LO
-            out[3] = -1
-            return
-        out[0] = i0
-        out[1] = j0
-        out[2] = k0
-        out[3] = _box_mask(i1 - i0 + 1, j1 - j0 + 1, k1 - k0 + 1)
+                    e0 = R[ax, 0] * x0 + R[ax, 1] * y0 + R[ax, 2] * z0 + t[ax]
+                    e1 = R[ax, 0] * x1 + R[ax, 1] * y1 + R[ax, 2] * z1 + t[ax]
+                    out[ax, v, u] = _first_tile(min(e0, e1), h, T)
+                    out[3 + ax, v, u] = _last_tile(max(e0, e1), h, T)
 
     @njit(cache=True, parallel=True)
     def quad_nodes(rng, ranges, params, max_disc, nodes):
@@ -645,135 +797,9 @@ def _band_kernels(kind: int):
                 n = 0
                 for qv in range(2 * bv, min(2 * bv + 2, nqv)):
                     for qu in range(2 * bu, min(2 * bu + 2, nqu)):
-                        quad_node(rng, ranges, qu, qv, max_disc, quads[n])
+                        _quad_node(kind, rng, ranges, qu, qv, max_disc, quads[n])
                         n += 1
                 _merge(quads, n, nodes[bv * cols + bu])
-
-    @njit(cache=True)
-    def node_points(
-        rng, qu, qv, a0, a1, b0, b1, params, table, R, t, eps0, eps1, falloff, margin, corners
-    ):
-        # Band-end points of the corners of the sub-quad [a0, a1] x [b0, b1] of quad
-        # (qu, qv): rows 0..3 at the near end, 4..7 at the far end; row k has du = k & 1,
-        # dv = k >> 1. Returns the band's range interval over the sub-quad: both ends are
-        # monotone in the bilinear range, so they are extreme at corners.
-        qu1 = qu + 1 if qu + 1 < rng.shape[1] else 0
-        r00 = rng[qv, qu]
-        r01 = rng[qv, qu1]
-        r10 = rng[qv + 1, qu]
-        r11 = rng[qv + 1, qu1]
-        lo = np.inf
-        hi = -np.inf
-        for k in range(4):
-            fu = a1 if k & 1 else a0
-            fv = b1 if k >> 1 else b0
-            r = (1.0 - fv) * ((1.0 - fu) * r00 + fu * r01) + fv * ((1.0 - fu) * r10 + fu * r11)
-            eps = eps0 + eps1 * r
-            f = falloff if falloff > 0.0 else eps
-            near = max(r - eps - margin, 0.0)
-            far = r + eps + f
-            lo = min(lo, near)
-            hi = max(hi, far)
-            world(R, t, params, table, qu + fu, qv + fv, near, corners, k)
-            world(R, t, params, table, qu + fu, qv + fv, far, corners, 4 + k)
-        return lo, hi
-
-    @njit(cache=True)
-    def slab_tiles(
-        qu, qv, a0, a1, b0, b1, lo, hi, params, table, R, t, h, T, fill, keys, count, seen,
-        corners, box,
-    ):  # fmt: skip
-        # Cover a narrow piece of the band (its sub-quad is at most half a tile across) that
-        # is long in range: cut the frustum of the sub-quad between ranges lo and hi into
-        # slabs about half a tile long, and emit the tiles of each slab's box.
-        for k in range(4):
-            fu = a1 if k & 1 else a0
-            fv = b1 if k >> 1 else b0
-            world(R, t, params, table, qu + fu, qv + fv, lo, corners, k)
-            world(R, t, params, table, qu + fu, qv + fv, hi, corners, 4 + k)
-        length = 0.0
-        for k in range(4):
-            d2 = 0.0
-            for ax in range(3):
-                d2 += (corners[4 + k, ax] - corners[k, ax]) ** 2
-            length = max(length, math.sqrt(d2))
-        n = min(max(int(math.ceil(length / (0.5 * T * h))), 1), _MAX_SLABS)
-        for s in range(1, n + 1):
-            d1 = lo + (hi - lo) * s / n
-            for k in range(4):
-                fu = a1 if k & 1 else a0
-                fv = b1 if k >> 1 else b0
-                world(R, t, params, table, qu + fu, qv + fv, d1, corners, 4 + k)
-            _box_of(corners, box)
-            count = _emit(_tile_range(box, h, T), keys, count, fill, seen)
-            for k in range(4):
-                for ax in range(3):
-                    corners[k, ax] = corners[4 + k, ax]
-        return count
-
-    @njit(cache=True)
-    def quad_tiles(
-        rng, qu, qv, params, table, R, t, eps0, eps1, falloff, margin, h, T, fill, keys, count,
-        seen, corners, box, stack,
-    ):  # fmt: skip
-        # Cover the band of one valid quad whose box spans more than _SPAN tiles on an axis
-        # with boxes spanning at most two:
-        # halve the quad across its wider side while the piece is wider than half a tile,
-        # then cover each narrow piece by slabs of its range interval (the band across a
-        # depth step, or seen edge-on, is long and thin).
-        stack[0, 0] = 0.0
-        stack[0, 1] = 1.0
-        stack[0, 2] = 0.0
-        stack[0, 3] = 1.0
-        top = 1
-        while top > 0:
-            top -= 1
-            a0 = stack[top, 0]
-            a1 = stack[top, 1]
-            b0 = stack[top, 2]
-            b1 = stack[top, 3]
-            lo, hi = node_points(
-                rng, qu, qv, a0, a1, b0, b1, params, table, R, t, eps0, eps1, falloff, margin,
-                corners,
-            )  # fmt: skip
-            _box_of(corners, box)
-            span = _tile_range(box, h, T)
-            if span[3] - span[0] <= 1 and span[4] - span[1] <= 1 and span[5] - span[2] <= 1:
-                count = _emit(span, keys, count, fill, seen)
-                continue
-            # the piece's width across its frustum at the far end of its range interval
-            world(R, t, params, table, qu + a0, qv + b0, hi, corners, 0)
-            world(R, t, params, table, qu + a1, qv + b0, hi, corners, 1)
-            world(R, t, params, table, qu + a0, qv + b1, hi, corners, 2)
-            wide_u = 0.0
-            wide_v = 0.0
-            for ax in range(3):
-                wide_u += (corners[1, ax] - corners[0, ax]) ** 2
-                wide_v += (corners[2, ax] - corners[0, ax]) ** 2
-            if max(wide_u, wide_v) <= (0.5 * T * h) ** 2:
-                count = slab_tiles(
-                    qu, qv, a0, a1, b0, b1, lo, hi, params, table, R, t, h, T, fill, keys,
-                    count, seen, corners, box,
-                )  # fmt: skip
-                continue
-            if a1 - a0 < _MIN_PIECE or b1 - b0 < _MIN_PIECE or top + 2 > stack.shape[0]:
-                count = _emit(span, keys, count, fill, seen)
-                continue
-            for half in range(2):
-                stack[top, 0] = a0
-                stack[top, 1] = a1
-                stack[top, 2] = b0
-                stack[top, 3] = b1
-                if wide_u >= wide_v:
-                    mid = 0.5 * (a0 + a1)
-                    stack[top, 0] = a0 if half == 0 else mid
-                    stack[top, 1] = mid if half == 0 else a1
-                else:
-                    mid = 0.5 * (b0 + b1)
-                    stack[top, 2] = b0 if half == 0 else mid
-                    stack[top, 3] = mid if half == 0 else b1
-                top += 1
-        return count
 
     @njit(cache=True, parallel=True)
     def band_tiles(
@@ -813,14 +839,14 @@ def _band_kernels(kind: int):
                 elif lvl == 0:  # its 2 x 2 quads, one by one
                     for qv in range(2 * i, min(2 * i + 2, nqv)):
                         for qu in range(2 * j, min(2 * j + 2, nqu)):
-                            quad_node(rng, ranges, qu, qv, max_disc, quad)
+                            _quad_node(kind, rng, ranges, qu, qv, max_disc, quad)
                             if quad[3] == 0:
                                 continue
                             if quad[0] != _BIG_LO:
                                 count = _emit_mask(quad, keys, count, fill, seen)
                                 continue
-                            count = quad_tiles(
-                                rng, qu, qv, params, table, R, t, eps0, eps1, falloff, margin,
+                            count = _quad_tiles(
+                                kind, rng, qu, qv, params, table, R, t, eps0, eps1, falloff, margin,
                                 h, T, fill, keys, count, seen, corners, box, quad_stack,
                             )  # fmt: skip
                 else:
@@ -847,7 +873,7 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
     t = np.ascontiguousarray(scan.T_W_S[:3, 3])
     rng = scan.surface_m
     pixel_ranges, quad_nodes, band_tiles = _band_kernels(scan.kind)
-    ranges = np.empty((*rng.shape, 6), np.int32)
+    ranges = np.empty((6, *rng.shape), np.int32)
     pixel_ranges(
         rng, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff, margin, h, T,
         ranges,
