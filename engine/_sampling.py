@@ -3,7 +3,7 @@
 The interpolated range at ``(u, v)`` is bilinear over the four pixels of the quad
 around the point (:func:`bilinear`), and the point gets information only when all
 four are valid, optionally within ``max_disc`` metres of each other
-(:func:`quad_ranges`). :func:`sample_range` puts the two together for one point
+(:func:`corner_ranges`). :func:`sample_range` puts the two together for one point
 (edge refinement, through :func:`point_contribution`); the fusion kernel reads
 the same quad validity from :func:`quad_bounds` (an invalid quad reaches
 nothing) and then calls :func:`bilinear`; the tile tests read the bounds'
@@ -100,21 +100,27 @@ def sample_range(kind, params, rng, u, v, max_disc):
 
 
 @njit(cache=True, inline="always")
-def quad_ranges(rng, qu, qv, max_disc):
-    """The four corner ranges of a quad (wrapping columns), and whether it informs anything."""
-    qu1 = qu + 1
-    if qu1 == rng.shape[1]:
-        qu1 = 0
+def corner_ranges(rng, qu, qu1, qv, max_disc):
+    """The four corner ranges of quad ``(qu, qv)`` whose right-hand column is ``qu1``, and
+    whether the quad informs anything: all four valid and, with ``max_disc >= 0``, within
+    ``max_disc`` of each other. No branch, so that loops over quads vectorise."""
     r00 = rng[qv, qu]
     r01 = rng[qv, qu1]
     r10 = rng[qv + 1, qu]
     r11 = rng[qv + 1, qu1]
-    ok = not (math.isnan(r00) or math.isnan(r01) or math.isnan(r10) or math.isnan(r11))
-    if ok and max_disc >= 0.0:
-        lo = min(min(r00, r01), min(r10, r11))
-        hi = max(max(r00, r01), max(r10, r11))
-        ok = hi - lo <= max_disc
+    spread = max(max(r00, r01), max(r10, r11)) - min(min(r00, r01), min(r10, r11))
+    ok = (r00 == r00) & (r01 == r01) & (r10 == r10) & (r11 == r11)  # none is NaN
+    ok = ok & ((max_disc < 0.0) | (spread <= max_disc))
     return r00, r01, r10, r11, ok
+
+
+@njit(cache=True, inline="always")
+def quad_ranges(rng, qu, qv, max_disc):
+    """:func:`corner_ranges` of quad ``(qu, qv)``, columns wrapping."""
+    qu1 = qu + 1
+    if qu1 == rng.shape[1]:
+        qu1 = 0
+    return corner_ranges(rng, qu, qu1, qv, max_disc)
 
 
 #: Slack (metres, plus the same relative to the range) by which :func:`quad_bounds` widens its
@@ -128,7 +134,20 @@ def widened(reach: float) -> float:
     return reach + 2.0 * _BOUND_SLACK * (1.0 + abs(reach))
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, inline="always")
+def _bounds_of(rng, qu, qu1, qv, eps0, eps1, falloff, max_disc, out):
+    r00, r01, r10, r11, ok = corner_ranges(rng, qu, qu1, qv, max_disc)
+    lo = min(min(r00, r01), min(r10, r11))
+    hi = max(max(r00, r01), max(r10, r11))
+    free = (1.0 - eps1) * lo - eps0  # eps1 < 1: increasing in r
+    eps = eps0 + eps1 * hi
+    f = falloff if falloff > 0.0 else eps
+    behind = hi + eps + f
+    out[qv, qu, 0] = free - _BOUND_SLACK * (1.0 + abs(free)) if ok else -np.inf
+    out[qv, qu, 1] = behind + _BOUND_SLACK * (1.0 + abs(behind)) if ok else -np.inf
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
 def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out):
     """Per pixel quad, two distances that settle most points without interpolating
     (``out`` float32 (H - 1, quad_columns, 2)):
@@ -143,21 +162,12 @@ def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out):
     """
     nqv = rng.shape[0] - 1
     nqu = quad_columns(kind, params)
+    W = rng.shape[1]
     for qv in prange(nqv):
-        for qu in range(nqu):
-            r00, r01, r10, r11, ok = quad_ranges(rng, qu, qv, max_disc)
-            if not ok:
-                out[qv, qu, 0] = -np.inf
-                out[qv, qu, 1] = -np.inf
-                continue
-            lo = min(min(r00, r01), min(r10, r11))
-            hi = max(max(r00, r01), max(r10, r11))
-            free = (1.0 - eps1) * lo - eps0  # eps1 < 1: increasing in r
-            eps = eps0 + eps1 * hi
-            f = falloff if falloff > 0.0 else eps
-            behind = hi + eps + f
-            out[qv, qu, 0] = free - _BOUND_SLACK * (1.0 + abs(free))
-            out[qv, qu, 1] = behind + _BOUND_SLACK * (1.0 + abs(behind))
+        for qu in range(min(nqu, W - 1)):  # branch-free: vectorises
+            _bounds_of(rng, qu, qu + 1, qv, eps0, eps1, falloff, max_disc, out)
+        if nqu == W:  # a wrapping sensor's quad between the last column and the first
+            _bounds_of(rng, W - 1, 0, qv, eps0, eps1, falloff, max_disc, out)
 
 
 def quad_bounds_array(kind, params, rng, eps0, eps1, falloff, max_disc) -> np.ndarray:

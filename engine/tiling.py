@@ -41,9 +41,9 @@ from . import _sensor_kernels as _k
 from ._sampling import (
     PYRAMID_SPAN,
     QUAD_BLOCK,
+    corner_ranges,
     pyramid_levels,
     quad_columns,
-    quad_ranges,
     widened,
 )
 from .certainty import SHAPE_LINEAR
@@ -495,13 +495,14 @@ _OVERFLOW = _overflow_masks()
 
 @njit(cache=True, inline="always")
 def _box_mask(nx, ny, nz):
-    """The mask of the tiles ``[0, nx) x [0, ny) x [0, nz)`` (each at most ``_SPAN``)."""
-    mask = np.int64(0)
-    for x in range(nx):
-        for y in range(ny):
-            for z in range(nz):
-                mask |= np.int64(1) << (16 * x + 4 * y + z)
-    return mask
+    """The mask of the tiles ``[0, nx) x [0, ny) x [0, nz)`` (each 1 to ``_SPAN``): the
+    product of one mask per axis, whose set bits (16 x, 4 y, z) add without carries.
+    No loop, so that loops calling it vectorise."""
+    one = np.int64(1)
+    mx = one | (np.int64(nx > 1) << 16) | (np.int64(nx > 2) << 32) | (np.int64(nx > 3) << 48)
+    my = one | (np.int64(ny > 1) << 4) | (np.int64(ny > 2) << 8) | (np.int64(ny > 3) << 12)
+    mz = (one << nz) - one
+    return mx * my * mz
 
 
 @njit(cache=True, inline="always")
@@ -604,28 +605,35 @@ def _world(kind, R, t, params, table, u, v, d, out, row):
 
 
 @njit(cache=True, inline="always")
-def _quad_node(kind, rng, ranges, qu, qv, max_disc, out):
-    # the node of one quad (see _merge): the tiles of the box of its band-end points, or
-    # big when it spans more than _SPAN tiles on an axis (quad_tiles covers it)
-    out[0] = 0
-    out[3] = 0
-    if not quad_ranges(rng, qu, qv, max_disc)[4]:
-        return
-    qu1 = qu + 1 if qu + 1 < rng.shape[1] else 0
+def _quad_box(rng, ranges, qu, qu1, qv, max_disc):
+    """The node of one quad (see _merge) as ``(lo_x, lo_y, lo_z, mask)``: the tiles of the box
+    of its band-end points; big (``_BIG_LO``, mask -1) when it spans more than ``_SPAN``
+    tiles on an axis (quad_tiles covers it); mask 0 for an invalid quad (see corner_ranges).
+    No branch, so that the loop over a row of quads vectorises."""
+    ok = corner_ranges(rng, qu, qu1, qv, max_disc)[4]
     i0 = _corners_min(ranges, 0, qu, qu1, qv)
     j0 = _corners_min(ranges, 1, qu, qu1, qv)
     k0 = _corners_min(ranges, 2, qu, qu1, qv)
-    i1 = _corners_max(ranges, 3, qu, qu1, qv)
-    j1 = _corners_max(ranges, 4, qu, qu1, qv)
-    k1 = _corners_max(ranges, 5, qu, qu1, qv)
-    if i1 - i0 >= _SPAN or j1 - j0 >= _SPAN or k1 - k0 >= _SPAN:
-        out[0] = _BIG_LO
-        out[3] = -1
-        return
-    out[0] = i0
-    out[1] = j0
-    out[2] = k0
-    out[3] = _box_mask(i1 - i0 + 1, j1 - j0 + 1, k1 - k0 + 1)
+    ni = _corners_max(ranges, 3, qu, qu1, qv) - i0 + 1
+    nj = _corners_max(ranges, 4, qu, qu1, qv) - j0 + 1
+    nk = _corners_max(ranges, 5, qu, qu1, qv) - k0 + 1
+    big = (ni > _SPAN) | (nj > _SPAN) | (nk > _SPAN)
+    mask = _box_mask(min(ni, _SPAN), min(nj, _SPAN), min(nk, _SPAN))
+    lo_x = np.int64(_BIG_LO) if big else np.int64(i0)
+    mask = np.int64(-1) if big else mask
+    return (
+        lo_x if ok else np.int64(0),
+        np.int64(j0),
+        np.int64(k0),
+        mask if ok else np.int64(0),
+    )
+
+
+@njit(cache=True, inline="always")
+def _quad_node(kind, rng, ranges, qu, qv, max_disc, out):
+    """:func:`_quad_box` of quad ``(qu, qv)`` (columns wrap) into ``out``."""
+    qu1 = qu + 1 if qu + 1 < rng.shape[1] else 0
+    out[0], out[1], out[2], out[3] = _quad_box(rng, ranges, qu, qu1, qv, max_disc)
 
 
 @njit(cache=True)
@@ -785,21 +793,37 @@ def _band_kernels(kind: int):
                     out[ax, v, u] = _first_tile(min(e0, e1), h, T)
                     out[3 + ax, v, u] = _last_tile(max(e0, e1), h, T)
 
-    @njit(cache=True, parallel=True)
+    @njit(cache=True, parallel=True, error_model="numpy")
     def quad_nodes(rng, ranges, params, max_disc, nodes):
         # level 0 of the node pyramid: one node per 2 x 2 quads, the merge of theirs
         nqv = rng.shape[0] - 1
         nqu = quad_columns(kind, params)
+        W = rng.shape[1]
         cols = -(-nqu // 2)
         for bv in prange(-(-nqv // 2)):
-            quads = np.empty((4, 4), np.int64)
+            quads = np.empty((4, 2, nqu), np.int64)  # lo_x, lo_y, lo_z, mask per quad
+            children = np.empty((4, 4), np.int64)
+            rows = min(2, nqv - 2 * bv)
+            for r in range(rows):
+                qv = 2 * bv + r
+                for qu in range(min(nqu, W - 1)):
+                    box = _quad_box(rng, ranges, qu, qu + 1, qv, max_disc)
+                    quads[0, r, qu] = box[0]
+                    quads[1, r, qu] = box[1]
+                    quads[2, r, qu] = box[2]
+                    quads[3, r, qu] = box[3]
+                if nqu == W:  # a wrapping sensor's quad between the last column and the first
+                    box = _quad_box(rng, ranges, W - 1, 0, qv, max_disc)
+                    for f in range(4):
+                        quads[f, r, W - 1] = box[f]
             for bu in range(cols):
                 n = 0
-                for qv in range(2 * bv, min(2 * bv + 2, nqv)):
+                for r in range(rows):
                     for qu in range(2 * bu, min(2 * bu + 2, nqu)):
-                        _quad_node(kind, rng, ranges, qu, qv, max_disc, quads[n])
+                        for f in range(4):
+                            children[n, f] = quads[f, r, qu]
                         n += 1
-                _merge(quads, n, nodes[bv * cols + bu])
+                _merge(children, n, nodes[bv * cols + bu])
 
     @njit(cache=True, parallel=True)
     def band_tiles(
