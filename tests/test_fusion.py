@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numba
 import numpy as np
 import pytest
@@ -334,3 +339,34 @@ def test_bounding_sphere_holds_everything_the_scan_informs(name, filter_name):
             prepared = prepare_scan(scan, params)
             np.testing.assert_array_equal(origin, prepared.origin_W)
             assert radius >= reach_radius(prepared) or not np.isfinite(prepared.reach_max)
+
+
+_CACHE_PROBE = """
+from engine import FusionParams, GridSpec, NoiseModel, Volume
+from engine.synth import make_dataset
+params = FusionParams(NoiseModel(eps_m=0.05, rho=0.05))
+for name, h in (("room", 0.04), ("street", 0.08)):
+    data = make_dataset(name, views=1, length_m=4.0 if name == "street" else None)
+    volume = Volume(GridSpec(h, 8, "mapping"), params)
+    volume.add_many(data.scans)
+    volume.extract_mesh()
+"""
+
+
+def test_kernels_compiled_once_load_from_the_cache_in_a_new_process(tmp_path):
+    """A second process running the same fusion and meshing compiles nothing: numba keys its
+    cache on a kernel's closure variables, so a factory whose kernels capture compiled
+    functions (instead of plain constants) misses the cache in every process."""
+    cache = os.environ.get("NUMBA_CACHE_DIR") or str(tmp_path / "numba")
+    env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+
+    def run_and_list() -> set[str]:
+        done = subprocess.run(
+            [sys.executable, "-c", _CACHE_PROBE], env=env, capture_output=True, text=True
+        )
+        assert done.returncode == 0, done.stderr
+        return {str(p.relative_to(cache)) for p in Path(cache).rglob("*") if p.is_file()}
+
+    first = run_and_list()
+    second = run_and_list()
+    assert sorted(second - first) == []
