@@ -189,12 +189,12 @@ def pyramid_levels(rows: int, cols: int, top_nodes: int = 1) -> np.ndarray:
     return np.array([(o, a, b) for o, (a, b) in zip(offsets, shapes, strict=True)], np.int64)
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _blocks_of_quads(bounds, free, reach):
     # level 0 of the pyramid: QUAD_BLOCK x QUAD_BLOCK quads per node
     nqv, nqu = bounds.shape[0], bounds.shape[1]
     cols = -(-nqu // QUAD_BLOCK)
-    for bv in range(-(-nqv // QUAD_BLOCK)):
+    for bv in prange(-(-nqv // QUAD_BLOCK)):
         for bu in range(cols):
             lo = np.inf
             hi = -np.inf
