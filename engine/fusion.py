@@ -360,7 +360,8 @@ class Volume:
         to_load = rows[~loaded[rows] & ~is_new[rows]]  # owner changes on tiles not in view
         if len(to_load):
             data[to_load] = self.store.read(keys[to_load])
-        self.store.write(keys[rows], data[rows], [owners[r] for r in rows])
+        written = data if len(rows) == len(keys) else data[rows]  # no copy in the usual case
+        self.store.write(keys[rows], written, [owners[r] for r in rows])
         return IntegrationReport(
             changed=keys[changed], created=created, voxel_updates=updates, scans=len(new_ids)
         )
