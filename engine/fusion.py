@@ -91,6 +91,7 @@ def _integrate_kernel(kind: int, shape: int):
             band_v = np.empty(N)
             band_d = np.empty(N)
             band_r = np.empty(N)
+            band_q = np.empty(N, np.int64)
             count = 0
             queued = 0
             i0 = keys[row, 0] * T
@@ -133,11 +134,13 @@ def _integrate_kernel(kind: int, shape: int):
                 v = band_v[m]
                 qu, qv = quad_origin(kind, params, u, v)
                 band_r[m] = bilinear(rng, qu, qv, u, v)
-            for m in range(queued):
+            for m in range(queued):  # vectorised: logit is plain arithmetic
                 r = band_r[m]
                 value, inf = contribution(band_d[m] - r, r, eps0, eps1, rho, falloff, shape, q_rho)
-                if inf:
-                    tile[at[m]] += sign * pack(value)
+                band_q[m] = sign * pack(value) if inf else 0
+            for m in range(queued):
+                if band_q[m] != 0:  # a packed contribution is never 0: its count bit is set
+                    tile[at[m]] += band_q[m]
                     count += 1
             informed[row] = count
 
