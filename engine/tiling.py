@@ -512,6 +512,25 @@ def _merge(children, n, out):
     A node is ``(lo_x, lo_y, lo_z, mask)``: ``mask`` has bit ``16 x + 4 y + z`` set when the
     band touches tile ``lo + (x, y, z)`` (0: no band); ``lo_x == _BIG_LO`` when the band
     spans more than ``_SPAN`` tiles on some axis (then so does the merged node)."""
+    # the usual case first: every child has band, none is big, all from the same corner
+    # tile; the merge is then the union of the masks
+    same = n > 0
+    mask = np.int64(0)
+    for k in range(n):
+        same = same and (
+            children[k, 3] != 0
+            and children[k, 0] != _BIG_LO
+            and children[k, 0] == children[0, 0]
+            and children[k, 1] == children[0, 1]
+            and children[k, 2] == children[0, 2]
+        )
+        mask |= children[k, 3]
+    if same:
+        out[0] = children[0, 0]
+        out[1] = children[0, 1]
+        out[2] = children[0, 2]
+        out[3] = mask
+        return
     none = np.iinfo(np.int64).max
     lo0 = none
     lo1 = none
