@@ -306,58 +306,54 @@ def _classify_tile(
     return PARTIAL
 
 
-@functools.cache
-def _classify_kernel(kind: int):
-    """Tile classification compiled for one sensor kind (see :func:`classify_tiles`)."""
-
-    @njit(cache=True, parallel=True)
-    def classify_many(
-        keys,
-        T,
-        halo,
-        h,
-        M,
-        c,
-        o_W,
-        params,
-        table,
-        reach,
-        free,
-        levels,
-        reach_max,
-        linear,
-        out,
-    ):
-        nqv = int(params[_k.P_H]) - 1
-        nqu = quad_columns(kind, params)
-        for n in prange(keys.shape[0]):
-            lo = np.empty(3)
-            hi = np.empty(3)
-            acc = np.empty(3)
-            out[n] = _classify_tile(
-                kind,
-                keys[n],
-                T,
-                halo,
-                h,
-                M,
-                c,
-                o_W,
-                params,
-                table,
-                reach,
-                free,
-                levels,
-                reach_max,
-                nqu,
-                nqv,
-                linear,
-                lo,
-                hi,
-                acc,
-            )
-
-    return classify_many
+@njit(cache=True, parallel=True)
+def _classify_many(
+    kind,
+    keys,
+    T,
+    halo,
+    h,
+    M,
+    c,
+    o_W,
+    params,
+    table,
+    reach,
+    free,
+    levels,
+    reach_max,
+    linear,
+    out,
+):
+    # _classify_tile for every key (kind: the sensor kind code; see classify_tiles)
+    nqv = int(params[_k.P_H]) - 1
+    nqu = quad_columns(kind, params)
+    for n in prange(keys.shape[0]):
+        lo = np.empty(3)
+        hi = np.empty(3)
+        acc = np.empty(3)
+        out[n] = _classify_tile(
+            kind,
+            keys[n],
+            T,
+            halo,
+            h,
+            M,
+            c,
+            o_W,
+            params,
+            table,
+            reach,
+            free,
+            levels,
+            reach_max,
+            nqu,
+            nqv,
+            linear,
+            lo,
+            hi,
+            acc,
+        )
 
 
 def classify_tiles(
@@ -375,7 +371,8 @@ def classify_tiles(
     out = np.zeros(keys.shape[0], dtype=np.int8)
     if keys.shape[0] == 0 or not math.isfinite(scan.reach_max):
         return out
-    _classify_kernel(scan.kind)(
+    _classify_many(
+        scan.kind,
         keys,
         grid.tile_size_vox,
         float(halo),
