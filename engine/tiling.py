@@ -645,13 +645,6 @@ def _quad_box(rng, ranges, qu, qu1, qv, max_disc):
     )
 
 
-@njit(cache=True, inline="always")
-def _quad_node(kind, rng, ranges, qu, qv, max_disc, out):
-    """:func:`_quad_box` of quad ``(qu, qv)`` (columns wrap) into ``out``."""
-    qu1 = qu + 1 if qu + 1 < rng.shape[1] else 0
-    out[0], out[1], out[2], out[3] = _quad_box(rng, ranges, qu, qu1, qv, max_disc)
-
-
 @njit(cache=True)
 def _node_points(
     kind, rng, qu, qv, a0, a1, b0, b1, params, table, R, t, eps0, eps1, falloff, margin, corners
@@ -790,7 +783,7 @@ def _band_kernels(kind: int):
         # tiles (lo_x, lo_y, lo_z, hi_x, hi_y, hi_z) of the box of the two band-end points of
         # every pixel, out (6, H, W); a quad's box is the union of its corners' boxes. No
         # branch, so that the loop vectorises: an invalid pixel (NaN) gets meaningless
-        # values, and quad_node reads only the corners of valid quads.
+        # values, and _quad_box uses only the corners of valid quads.
         H, W = rng.shape
         for v in prange(H):
             fv = float(v)
@@ -879,7 +872,10 @@ def _band_kernels(kind: int):
                 elif lvl == 0:  # its 2 x 2 quads, one by one
                     for qv in range(2 * i, min(2 * i + 2, nqv)):
                         for qu in range(2 * j, min(2 * j + 2, nqu)):
-                            _quad_node(kind, rng, ranges, qu, qv, max_disc, quad)
+                            qu1 = qu + 1 if qu + 1 < rng.shape[1] else 0
+                            quad[0], quad[1], quad[2], quad[3] = _quad_box(
+                                rng, ranges, qu, qu1, qv, max_disc
+                            )
                             if quad[3] == 0:
                                 continue
                             if quad[0] != _BIG_LO:
