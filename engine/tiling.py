@@ -11,7 +11,9 @@ volume does not depend on the order in which scans arrive):
   rectangle (exact corner projection for pinhole and orthographic sensors, the
   circumscribed sphere for spherical and cylindrical ones) and compared with
   block statistics of the pixel quads under it (farthest informed distance,
-  free-space bound; :func:`engine._sampling.block_pyramid`). A tile
+  free-space bound; :func:`engine._sampling.block_pyramid`). A pinhole box
+  with all corners outside one side of the image's pyramid is ``OUT`` too:
+  a box across the sensor's plane ``z = 0`` has no bounded rectangle. A tile
   is *in view* unless it is ``OUT``.
 * :func:`tiles_touched` enumerates the tiles a scan *allocates*. Mapping mode:
   the tiles that the band ``[-eps - margin, eps + falloff]`` around the
@@ -208,6 +210,14 @@ def _classify_tile(
     if kind == _k.PINHOLE or kind == _k.ORTHOGRAPHIC:  # point-like centre of projection
         d_min = np.inf
         z_max = -np.inf
+        # a pinhole's image is a pyramid: the intersection of four half-spaces through the
+        # centre (u >= 0, u <= W - 1, v >= 0, v <= H - 1 times z > 0). A box with every
+        # corner outside one of them sees nothing; the test matters for boxes that cross
+        # the plane z = 0, whose pixel rectangle is unbounded (the whole image below).
+        out_left = True
+        out_right = True
+        out_top = True
+        out_bottom = True
         for corner in range(8):
             x = hi[0] if corner & 1 else lo[0]
             y = hi[1] if corner & 2 else lo[1]
@@ -217,6 +227,13 @@ def _classify_tile(
             pz = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + c[2]
             d_min = min(d_min, pz)
             z_max = max(z_max, pz)
+            if kind == _k.PINHOLE:
+                fu = params[_k.P_FX] * px
+                fv = params[_k.P_FY] * py
+                out_left &= fu + (params[_k.P_CX] + _PIXEL_SLACK) * pz < 0.0
+                out_right &= fu + (params[_k.P_CX] - (W - 1.0) - _PIXEL_SLACK) * pz > 0.0
+                out_top &= fv + (params[_k.P_CY] + _PIXEL_SLACK) * pz < 0.0
+                out_bottom &= fv + (params[_k.P_CY] - (H - 1.0) - _PIXEL_SLACK) * pz > 0.0
             if kind == _k.ORTHOGRAPHIC:
                 u = px / params[_k.P_SX] + params[_k.P_OCX]
                 v = py / params[_k.P_SY] + params[_k.P_OCY]
@@ -233,6 +250,8 @@ def _classify_tile(
             v_hi = max(v_hi, v)
         if z_max < 0.0 or (kind == _k.PINHOLE and z_max <= 0.0):
             return OUT  # entirely behind the sensor
+        if kind == _k.PINHOLE and (out_left or out_right or out_top or out_bottom):
+            return OUT  # entirely beside the image's pyramid
         d_min = max(d_min, 0.0)
         if kind == _k.PINHOLE and params[_k.P_Z_CONV] == 0.0:
             d_min = _box_distance(lo, hi, o_W)

@@ -116,6 +116,42 @@ def test_mapping_allocation_is_tight() -> None:
     assert needed / allocated > 0.7
 
 
+def test_tile_classification_is_conservative_around_a_pinhole() -> None:
+    # Every tile within 1 m of the camera, many of them across the plane z = 0 through it
+    # (their pixel rectangle is unbounded). OUT: the kernel, voxel by voxel, informs none
+    # of its voxels; FREE: it informs all of them, with logit(rho). Tiles across that
+    # plane but beside the image's pyramid are OUT (they used to be fused for nothing).
+    h, T = 0.02, 8
+    data = make_dataset("room", views=3)
+    params = FusionParams(NoiseModel(eps_m=2 * h, rho=0.05))
+    grid = GridSpec(h, T, "mapping")
+    span = np.arange(-6, 7)
+    offsets = np.stack(np.meshgrid(span, span, span, indexing="ij"), -1).reshape(-1, 3)
+    corners = np.stack(
+        np.meshgrid([0.5, T - 0.5], [0.5, T - 0.5], [0.5, T - 0.5], indexing="ij"), -1
+    ).reshape(-1, 3)
+    crossing_out = crossing_empty = 0
+    for _, scan in data.scans:
+        prepared = prepare_scan(scan, params)
+        keys = np.floor(prepared.origin_W / (T * h)).astype(np.int64) + offsets
+        status = classify_tiles(prepared, grid, keys)
+        packed = np.zeros((len(keys), T, T, T), np.int64)
+        rows = np.arange(len(keys))
+        informed = integrate_seen(prepared, grid, keys, packed, rows, np.zeros(len(keys), bool), 1)
+        assert not np.any(informed[status == OUT])
+        free = status == FREE
+        assert np.all(informed[free] == T**3)
+        assert np.all(packed[free] >> COUNT_BITS == prepared.q_rho)
+        # tiles across the sensor's plane z = 0
+        world = (keys[:, None, :] * T + corners[None]) * h
+        z = world @ prepared.M[2] + prepared.c[2]
+        crossing = (z.min(axis=1) <= 0.0) & (z.max(axis=1) > 0.0)
+        crossing_out += int(np.sum(crossing & (status == OUT)))
+        crossing_empty += int(np.sum(crossing & (informed == 0)))
+    assert crossing_empty > 100
+    assert crossing_out > 0.8 * crossing_empty
+
+
 @pytest.mark.parametrize(
     "options",
     [
