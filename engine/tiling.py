@@ -83,6 +83,8 @@ _MAX_SLABS = 4096
 _SEEN = 256
 #: The allocation pyramid is merged up to at most this many top nodes (the parallel walk).
 _TOP_NODES = 256
+#: Keys each top node's walk can hold (most emit far fewer; see _band_tile_keys).
+_WALK_ROOM = 1024
 #: Slack, in pixels and metres, added to the conservative tests against rounding.
 _PIXEL_SLACK = 1e-3
 _DIST_SLACK = 1e-9
@@ -452,16 +454,18 @@ def _tile_range(box, h, T):
 
 
 @njit(cache=True, inline="always")
-def _emit_key(a, b, c, keys, count, fill, seen):
+def _emit_key(a, b, c, keys, count, seen):
     """Emit tile ``(a, b, c)`` unless ``seen`` (a small direct-mapped cache of keys emitted
-    lately, ``(_SEEN, 3)``) holds it: neighbouring pieces of the band mostly repeat tiles."""
+    lately, ``(_SEEN, 3)``) holds it: neighbouring pieces of the band mostly repeat tiles.
+    Returns the count of keys emitted; the key is written to ``keys[count]`` when it fits
+    (an empty ``keys`` only counts)."""
     slot = ((a * 73856093) ^ (b * 19349663) ^ (c * 83492791)) & (seen.shape[0] - 1)
     if seen[slot, 0] == a and seen[slot, 1] == b and seen[slot, 2] == c:
         return count
     seen[slot, 0] = a
     seen[slot, 1] = b
     seen[slot, 2] = c
-    if fill:
+    if count < keys.shape[0]:
         keys[count, 0] = a
         keys[count, 1] = b
         keys[count, 2] = c
@@ -469,12 +473,12 @@ def _emit_key(a, b, c, keys, count, fill, seen):
 
 
 @njit(cache=True, inline="always")
-def _emit(rng6, keys, count, fill, seen):
+def _emit(rng6, keys, count, seen):
     """Emit the tiles of a key range (see :func:`_emit_key`)."""
     for a in range(rng6[0], rng6[3] + 1):
         for b in range(rng6[1], rng6[4] + 1):
             for c in range(rng6[2], rng6[5] + 1):
-                count = _emit_key(a, b, c, keys, count, fill, seen)
+                count = _emit_key(a, b, c, keys, count, seen)
     return count
 
 
@@ -604,13 +608,13 @@ def _merge_level(nodes, levels, level):
 
 
 @njit(cache=True, inline="always")
-def _emit_mask(node, keys, count, fill, seen):
+def _emit_mask(node, keys, count, seen):
     for bit in range(64):
         if node[3] & (np.int64(1) << bit):
             a = node[0] + (bit >> 4)
             b = node[1] + ((bit >> 2) & 3)
             c = node[2] + (bit & 3)
-            count = _emit_key(a, b, c, keys, count, fill, seen)
+            count = _emit_key(a, b, c, keys, count, seen)
     return count
 
 
@@ -696,7 +700,7 @@ def _node_points(
 
 @njit(cache=True)
 def _slab_tiles(
-    kind, qu, qv, a0, a1, b0, b1, lo, hi, params, table, R, t, h, T, fill, keys, count, seen,
+    kind, qu, qv, a0, a1, b0, b1, lo, hi, params, table, R, t, h, T, keys, count, seen,
     corners, box,
 ):  # fmt: skip
     # Cover a narrow piece of the band (its sub-quad is at most half a tile across) that
@@ -721,7 +725,7 @@ def _slab_tiles(
             fv = b1 if k >> 1 else b0
             _world(kind, R, t, params, table, qu + fu, qv + fv, d1, corners, 4 + k)
         _box_of(corners, box)
-        count = _emit(_tile_range(box, h, T), keys, count, fill, seen)
+        count = _emit(_tile_range(box, h, T), keys, count, seen)
         for k in range(4):
             for ax in range(3):
                 corners[k, ax] = corners[4 + k, ax]
@@ -730,8 +734,8 @@ def _slab_tiles(
 
 @njit(cache=True)
 def _quad_tiles(
-    kind, rng, qu, qv, params, table, R, t, eps0, eps1, falloff, margin, h, T, fill, keys, count,
-    seen, corners, box, stack,
+    kind, rng, qu, qv, params, table, R, t, eps0, eps1, falloff, margin, h, T, keys, count, seen,
+    corners, box, stack,
 ):  # fmt: skip
     # Cover the band of one valid quad whose box spans more than _SPAN tiles on an axis
     # with boxes spanning at most two:
@@ -756,7 +760,7 @@ def _quad_tiles(
         _box_of(corners, box)
         span = _tile_range(box, h, T)
         if span[3] - span[0] <= 1 and span[4] - span[1] <= 1 and span[5] - span[2] <= 1:
-            count = _emit(span, keys, count, fill, seen)
+            count = _emit(span, keys, count, seen)
             continue
         # the piece's width across its frustum at the far end of its range interval
         _world(kind, R, t, params, table, qu + a0, qv + b0, hi, corners, 0)
@@ -769,12 +773,12 @@ def _quad_tiles(
             wide_v += (corners[2, ax] - corners[0, ax]) ** 2
         if max(wide_u, wide_v) <= (0.5 * T * h) ** 2:
             count = _slab_tiles(
-                kind, qu, qv, a0, a1, b0, b1, lo, hi, params, table, R, t, h, T, fill, keys,
-                count, seen, corners, box,
+                kind, qu, qv, a0, a1, b0, b1, lo, hi, params, table, R, t, h, T, keys, count,
+                seen, corners, box,
             )  # fmt: skip
             continue
         if a1 - a0 < _MIN_PIECE or b1 - b0 < _MIN_PIECE or top + 2 > stack.shape[0]:
-            count = _emit(span, keys, count, fill, seen)
+            count = _emit(span, keys, count, seen)
             continue
         for half in range(2):
             stack[top, 0] = a0
@@ -856,18 +860,20 @@ def _band_kernels(kind: int):
     @njit(cache=True, parallel=True)
     def band_tiles(
         rng, ranges, params, table, R, t, eps0, eps1, falloff, max_disc, margin, h, T, nodes,
-        levels, fill, offsets, keys,
+        levels, todo, starts, ends, keys, counts,
     ):  # fmt: skip
-        # Walk the node pyramid from each top node: a masked node emits its tiles, a big one
-        # is opened (a big quad is covered by quad_tiles). Count first (fill False: the
-        # number of keys of each top node into offsets), then fill from those offsets.
+        # Walk the node pyramid from each top node ``todo[m]``: a masked node emits its
+        # tiles, a big one is opened (a big quad is covered by quad_tiles). The top node's
+        # keys go to keys[starts[m]:ends[m]] as far as they fit; counts[todo[m]] receives
+        # how many it emits (it did not fit when that exceeds ends[m] - starts[m]).
         top = levels.shape[0] - 1
         tw = levels[top, 2]
         nqv = rng.shape[0] - 1
         nqu = quad_columns(kind, params)
-        n_top = levels[top, 1] * tw
-        for n in prange(n_top):
-            count = offsets[n]
+        for m in prange(todo.shape[0]):
+            n = todo[m]
+            out = keys[starts[m] : ends[m]]
+            count = 0
             seen = np.full((_SEEN, 3), np.iinfo(np.int64).min, np.int64)
             corners = np.empty((8, 3))
             box = np.empty(6)
@@ -887,7 +893,7 @@ def _band_kernels(kind: int):
                 if node[3] == 0:
                     continue
                 if node[0] != _BIG_LO:
-                    count = _emit_mask(node, keys, count, fill, seen)
+                    count = _emit_mask(node, out, count, seen)
                 elif lvl == 0:  # its 2 x 2 quads, one by one
                     for qv in range(2 * i, min(2 * i + 2, nqv)):
                         for qu in range(2 * j, min(2 * j + 2, nqu)):
@@ -898,11 +904,11 @@ def _band_kernels(kind: int):
                             if quad[3] == 0:
                                 continue
                             if quad[0] != _BIG_LO:
-                                count = _emit_mask(quad, keys, count, fill, seen)
+                                count = _emit_mask(quad, out, count, seen)
                                 continue
                             count = _quad_tiles(
                                 kind, rng, qu, qv, params, table, R, t, eps0, eps1, falloff, margin,
-                                h, T, fill, keys, count, seen, corners, box, quad_stack,
+                                h, T, out, count, seen, corners, box, quad_stack,
                             )  # fmt: skip
                 else:
                     for di in range(2):
@@ -914,8 +920,7 @@ def _band_kernels(kind: int):
                                 stack[depth, 1] = ci
                                 stack[depth, 2] = cj
                                 depth += 1
-            if not fill:
-                offsets[n] = count
+            counts[n] = count
 
     return pixel_ranges, quad_nodes, band_tiles
 
@@ -944,13 +949,24 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
         rng, ranges, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff,
         scan.max_disc, margin, h, T, nodes, levels,
     )  # fmt: skip
-    counts = np.zeros(int(levels[-1, 1] * levels[-1, 2]), np.int64)
-    band_tiles(*args, False, counts, np.zeros((0, 3), np.int64))
-    offsets = np.zeros(len(counts), np.int64)
-    np.cumsum(counts[:-1], out=offsets[1:])
-    keys = np.empty((int(counts.sum()), 3), np.int64)
-    band_tiles(*args, True, offsets, keys)
-    return unique_keys(keys)
+    # one walk with room for _WALK_ROOM keys per top node; the rare top node that emits
+    # more (a LiDAR's far rings) walks again into room of its exact size
+    n_top = int(levels[-1, 1] * levels[-1, 2])
+    todo = np.arange(n_top, dtype=np.int64)
+    starts = todo * _WALK_ROOM
+    counts = np.zeros(n_top, np.int64)
+    keys = np.empty((n_top * _WALK_ROOM, 3), np.int64)
+    band_tiles(*args, todo, starts, starts + _WALK_ROOM, keys, counts)
+    fits = counts <= _WALK_ROOM
+    room = np.arange(_WALK_ROOM)[None, :] < np.where(fits, counts, 0)[:, None]
+    found = keys.reshape(n_top, _WALK_ROOM, 3)[room]
+    again = todo[~fits]
+    if len(again):
+        ends = np.cumsum(counts[again])
+        more = np.empty((int(ends[-1]), 3), np.int64)
+        band_tiles(*args, again, ends - counts[again], ends, more, counts)
+        found = np.concatenate([found, more])
+    return unique_keys(found)
 
 
 # --------------------------------------------------------------------------------------------

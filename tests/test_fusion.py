@@ -29,6 +29,7 @@ from engine import (
 )
 from engine.defaults import COUNT_BITS, LOGIT_SCALE
 from engine.fusion import integrate_seen
+from engine import tiling
 from engine.synth import make_dataset
 from engine.tiling import FREE, OUT, classify_tiles, tiles_touched
 from tests import reference, scenes
@@ -114,6 +115,24 @@ def test_mapping_allocation_is_tight() -> None:
         allocated += len(keys)
         needed += int(band.reshape(len(keys), -1).any(axis=1).sum())
     assert needed / allocated > 0.7
+
+
+@pytest.mark.parametrize("name", ["room", "street"])
+def test_allocation_walk_overflow_gives_the_same_tiles(
+    name: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The walk holds _WALK_ROOM keys per top node and walks a node again when it emits
+    # more; with room for one key nearly every node walks twice, with the same tiles.
+    h = 0.02
+    params = FusionParams(NoiseModel(eps_m=2 * h, rho=0.05))
+    grid = GridSpec(h, 16, "mapping")
+    for _, scan in make_dataset(name, views=2).scans:
+        prepared = prepare_scan(scan, params)
+        expected = tiles_touched(prepared, grid)
+        monkeypatch.setattr(tiling, "_WALK_ROOM", 1)
+        assert np.array_equal(tiles_touched(prepared, grid), expected)
+        monkeypatch.undo()
+    assert len(expected) > 100
 
 
 def test_tile_classification_is_conservative_around_a_pinhole() -> None:
