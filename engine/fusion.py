@@ -53,9 +53,9 @@ def _integrate_kernel(kind: int, shape: int):
        and find its quad, in one vectorised loop over the slab whose ``y`` and ``z`` come
        from per-tile tables (loops over lines of ``T`` voxels spend as much in setting up
        as in working: the slab loop made the kernel 12-14% faster);
-    2. over the slab, read the quad's bounds (:func:`engine._sampling.quad_bounds`): free space takes
-       ``logit(rho)`` at once, points beyond the reach nothing; the rest, the band, is
-       queued with its pixel coordinates and distance;
+    2. over the slab, read the quad's bounds (:func:`engine._sampling.quad_bounds`): free
+       space takes ``logit(rho)`` at once, points beyond the reach nothing; the rest, the
+       band, is queued with its pixel coordinates and distance;
     3. over the tile's queue: the bilinear range, then the certainty (vectorised), then
        the additions.
 

@@ -26,10 +26,10 @@ from engine import (
     decode_count,
     decode_logodds,
     prepare_scan,
+    tiling,
 )
 from engine.defaults import COUNT_BITS, LOGIT_SCALE
 from engine.fusion import integrate_seen
-from engine import tiling
 from engine.synth import make_dataset
 from engine.tiling import FREE, OUT, classify_tiles, tiles_touched
 from tests import reference, scenes
