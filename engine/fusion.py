@@ -86,12 +86,12 @@ def _integrate_kernel(kind: int, shape: int):
                 continue
             # one slab's projections, then the tile's queue of band points
             TT = T * T
-            plane_y = np.empty(TT)
-            plane_z = np.empty(TT)
-            line_u = np.empty(TT)
-            line_v = np.empty(TT)
-            line_d = np.empty(TT)
-            line_q = np.empty(TT, np.int64)
+            slab_y = np.empty(TT)
+            slab_z = np.empty(TT)
+            slab_u = np.empty(TT)
+            slab_v = np.empty(TT)
+            slab_d = np.empty(TT)
+            slab_q = np.empty(TT, np.int64)
             at = np.empty(N, np.int64)
             band_u = np.empty(N)
             band_v = np.empty(N)
@@ -106,13 +106,13 @@ def _integrate_kernel(kind: int, shape: int):
             for b in range(T):
                 y = ((j0 + b) + 0.5) * h
                 for cc in range(T):
-                    plane_y[b * T + cc] = y
-                    plane_z[b * T + cc] = ((k0 + cc) + 0.5) * h
+                    slab_y[b * T + cc] = y
+                    slab_z[b * T + cc] = ((k0 + cc) + 0.5) * h
             for a in range(T):
                 x = ((i0 + a) + 0.5) * h
                 for m in range(TT):  # pass 1
-                    y = plane_y[m]
-                    z = plane_z[m]
+                    y = slab_y[m]
+                    z = slab_z[m]
                     bx = M[0, 0] * x + M[0, 1] * y + c[0]
                     by = M[1, 0] * x + M[1, 1] * y + c[1]
                     bz = M[2, 0] * x + M[2, 1] * y + c[2]
@@ -120,23 +120,23 @@ def _integrate_kernel(kind: int, shape: int):
                         kind, params, table, bx + M[0, 2] * z, by + M[1, 2] * z,
                         bz + M[2, 2] * z,
                     )  # fmt: skip
-                    line_u[m] = u
-                    line_v[m] = v
-                    line_d[m] = d
-                    line_q[m] = quad_index(kind, params, u, v)
+                    slab_u[m] = u
+                    slab_v[m] = v
+                    slab_d[m] = d
+                    slab_q[m] = quad_index(kind, params, u, v)
                 base = a * TT
                 for m in range(TT):  # pass 2
-                    q = line_q[m]
+                    q = slab_q[m]
                     if q < 0:
                         continue
-                    d = line_d[m]
+                    d = slab_d[m]
                     if linear and d < flat_bounds[2 * q]:
                         tile[base + m] += free_value
                         count += 1
                     elif d <= flat_bounds[2 * q + 1]:
                         at[queued] = base + m
-                        band_u[queued] = line_u[m]
-                        band_v[queued] = line_v[m]
+                        band_u[queued] = slab_u[m]
+                        band_v[queued] = slab_v[m]
                         band_d[queued] = d
                         queued += 1
             for m in range(queued):  # pass 3

@@ -213,7 +213,7 @@ def _classify_tile(
         d_min = np.inf
         z_max = -np.inf
         # a pinhole's image is a pyramid: the intersection of four half-spaces through the
-        # centre (u >= 0, u <= W - 1, v >= 0, v <= H - 1 times z > 0). A box with every
+        # centre (u >= 0, u <= W - 1, v >= 0, v <= H - 1, each with z > 0). A box with every
         # corner outside one of them sees nothing; the test matters for boxes that cross
         # the plane z = 0, whose pixel rectangle is unbounded (the whole image below).
         out_left = True
