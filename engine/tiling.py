@@ -329,23 +329,9 @@ def _classify_tile(
 
 @njit(cache=True, parallel=True)
 def _classify_many(
-    kind,
-    keys,
-    T,
-    halo,
-    h,
-    M,
-    c,
-    o_W,
-    params,
-    table,
-    reach,
-    free,
-    levels,
-    reach_max,
-    linear,
+    kind, keys, T, halo, h, M, c, o_W, params, table, reach, free, levels, reach_max, linear,
     out,
-):
+):  # fmt: skip
     # _classify_tile for every key (kind: the sensor kind code; see classify_tiles)
     nqv = int(params[_k.P_H]) - 1
     nqu = quad_columns(kind, params)
@@ -354,27 +340,9 @@ def _classify_many(
         hi = np.empty(3)
         acc = np.empty(3)
         out[n] = _classify_tile(
-            kind,
-            keys[n],
-            T,
-            halo,
-            h,
-            M,
-            c,
-            o_W,
-            params,
-            table,
-            reach,
-            free,
-            levels,
-            reach_max,
-            nqu,
-            nqv,
-            linear,
-            lo,
-            hi,
-            acc,
-        )
+            kind, keys[n], T, halo, h, M, c, o_W, params, table, reach, free, levels,
+            reach_max, nqu, nqv, linear, lo, hi, acc,
+        )  # fmt: skip
 
 
 def classify_tiles(
