@@ -100,18 +100,24 @@ def sample_range(kind, params, rng, u, v, max_disc):
 
 
 @njit(cache=True, inline="always")
+def quad_valid(r00, r01, r10, r11, max_disc):
+    """Whether a quad with these corner ranges informs anything: all four valid and, with
+    ``max_disc >= 0``, within ``max_disc`` of each other. No branch, so that loops over quads
+    vectorise (scalar arguments: a loop whose inlined helpers take arrays does not)."""
+    spread = max(max(r00, r01), max(r10, r11)) - min(min(r00, r01), min(r10, r11))
+    ok = (r00 == r00) & (r01 == r01) & (r10 == r10) & (r11 == r11)  # none is NaN
+    return ok & ((max_disc < 0.0) | (spread <= max_disc))
+
+
+@njit(cache=True, inline="always")
 def corner_ranges(rng, qu, qu1, qv, max_disc):
     """The four corner ranges of quad ``(qu, qv)`` whose right-hand column is ``qu1``, and
-    whether the quad informs anything: all four valid and, with ``max_disc >= 0``, within
-    ``max_disc`` of each other. No branch, so that loops over quads vectorise."""
+    whether the quad informs anything (:func:`quad_valid`)."""
     r00 = rng[qv, qu]
     r01 = rng[qv, qu1]
     r10 = rng[qv + 1, qu]
     r11 = rng[qv + 1, qu1]
-    spread = max(max(r00, r01), max(r10, r11)) - min(min(r00, r01), min(r10, r11))
-    ok = (r00 == r00) & (r01 == r01) & (r10 == r10) & (r11 == r11)  # none is NaN
-    ok = ok & ((max_disc < 0.0) | (spread <= max_disc))
-    return r00, r01, r10, r11, ok
+    return r00, r01, r10, r11, quad_valid(r00, r01, r10, r11, max_disc)
 
 
 @njit(cache=True, inline="always")
@@ -135,16 +141,19 @@ def widened(reach: float) -> float:
 
 
 @njit(cache=True, inline="always")
-def _bounds_of(rng, qu, qu1, qv, eps0, eps1, falloff, max_disc, out):
-    r00, r01, r10, r11, ok = corner_ranges(rng, qu, qu1, qv, max_disc)
+def _bounds_of(r00, r01, r10, r11, eps0, eps1, falloff, max_disc):
+    """The two bounds of a quad with these corner ranges (see :func:`quad_bounds`)."""
+    ok = quad_valid(r00, r01, r10, r11, max_disc)
     lo = min(min(r00, r01), min(r10, r11))
     hi = max(max(r00, r01), max(r10, r11))
     free = (1.0 - eps1) * lo - eps0  # eps1 < 1: increasing in r
     eps = eps0 + eps1 * hi
     f = falloff if falloff > 0.0 else eps
     behind = hi + eps + f
-    out[qv, qu, 0] = free - _BOUND_SLACK * (1.0 + abs(free)) if ok else -np.inf
-    out[qv, qu, 1] = behind + _BOUND_SLACK * (1.0 + abs(behind)) if ok else -np.inf
+    return (
+        free - _BOUND_SLACK * (1.0 + abs(free)) if ok else -np.inf,
+        behind + _BOUND_SLACK * (1.0 + abs(behind)) if ok else -np.inf,
+    )
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -159,15 +168,31 @@ def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out):
     Both ends increase with ``r`` (``0 <= eps1 < 1``), so the extremes are at the smallest
     and the largest corner. An invalid quad informs nothing: ``(-inf, -inf)``. Each bound is moved
     outwards by ``_BOUND_SLACK`` (absolute and relative) so that it errs on the safe side.
+
+    A row of quads is computed from the two rows of pixels into two contiguous buffers, then
+    interleaved: a loop that stores both bounds of a quad side by side does not vectorise
+    (3.6x slower).
     """
     nqv = rng.shape[0] - 1
     nqu = quad_columns(kind, params)
     W = rng.shape[1]
     for qv in prange(nqv):
+        a = rng[qv]
+        b = rng[qv + 1]
+        lower = np.empty(nqu, np.float32)
+        upper = np.empty(nqu, np.float32)
         for qu in range(min(nqu, W - 1)):  # branch-free: vectorises
-            _bounds_of(rng, qu, qu + 1, qv, eps0, eps1, falloff, max_disc, out)
+            lower[qu], upper[qu] = _bounds_of(
+                a[qu], a[qu + 1], b[qu], b[qu + 1], eps0, eps1, falloff, max_disc
+            )
         if nqu == W:  # a wrapping sensor's quad between the last column and the first
-            _bounds_of(rng, W - 1, 0, qv, eps0, eps1, falloff, max_disc, out)
+            lower[W - 1], upper[W - 1] = _bounds_of(
+                a[W - 1], a[0], b[W - 1], b[0], eps0, eps1, falloff, max_disc
+            )
+        row = out[qv]
+        for qu in range(nqu):
+            row[qu, 0] = lower[qu]
+            row[qu, 1] = upper[qu]
 
 
 def quad_bounds_array(kind, params, rng, eps0, eps1, falloff, max_disc) -> np.ndarray:

@@ -46,6 +46,7 @@ from ._sampling import (
     corner_ranges,
     pyramid_levels,
     quad_columns,
+    quad_valid,
     widened,
 )
 from .certainty import SHAPE_LINEAR
@@ -587,21 +588,13 @@ def _emit_mask(node, keys, count, seen):
 
 
 @njit(cache=True, inline="always")
-def _corners_min(ranges, k, qu, qu1, qv):
-    """Smallest of ``ranges[k]`` at the four corners of quad ``(qu, qv)``."""
-    return min(
-        min(ranges[k, qv, qu], ranges[k, qv, qu1]),
-        min(ranges[k, qv + 1, qu], ranges[k, qv + 1, qu1]),
-    )
+def _min4(a, b, c, d):
+    return min(min(a, b), min(c, d))
 
 
 @njit(cache=True, inline="always")
-def _corners_max(ranges, k, qu, qu1, qv):
-    """Largest of ``ranges[k]`` at the four corners of quad ``(qu, qv)``."""
-    return max(
-        max(ranges[k, qv, qu], ranges[k, qv, qu1]),
-        max(ranges[k, qv + 1, qu], ranges[k, qv + 1, qu1]),
-    )
+def _max4(a, b, c, d):
+    return max(max(a, b), max(c, d))
 
 
 @njit(cache=True, inline="always")
@@ -612,18 +605,15 @@ def _world(kind, R, t, params, table, u, v, d, out, row):
 
 
 @njit(cache=True, inline="always")
-def _quad_box(rng, ranges, qu, qu1, qv, max_disc):
-    """The node of one quad (see _merge) as ``(lo_x, lo_y, lo_z, mask)``: the tiles of the box
-    of its band-end points; big (``_BIG_LO``, mask -1) when it spans more than ``_SPAN``
-    tiles on an axis (quad_tiles covers it); mask 0 for an invalid quad (see corner_ranges).
-    No branch, so that the loop over a row of quads vectorises."""
-    ok = corner_ranges(rng, qu, qu1, qv, max_disc)[4]
-    i0 = _corners_min(ranges, 0, qu, qu1, qv)
-    j0 = _corners_min(ranges, 1, qu, qu1, qv)
-    k0 = _corners_min(ranges, 2, qu, qu1, qv)
-    ni = _corners_max(ranges, 3, qu, qu1, qv) - i0 + 1
-    nj = _corners_max(ranges, 4, qu, qu1, qv) - j0 + 1
-    nk = _corners_max(ranges, 5, qu, qu1, qv) - k0 + 1
+def _quad_node(ok, i0, j0, k0, i1, j1, k1):
+    """The node (see _merge) ``(lo_x, lo_y, lo_z, mask)`` of a quad whose band-end points lie
+    in the tiles ``[i0, i1] x [j0, j1] x [k0, k1]``: big (``_BIG_LO``, mask -1) when that
+    spans more than ``_SPAN`` tiles on an axis (quad_tiles covers it); mask 0 when the quad
+    is not ``ok`` (valid, see quad_valid). No branch and scalar arguments, so that the loop
+    over a row of quads vectorises."""
+    ni = i1 - i0 + 1
+    nj = j1 - j0 + 1
+    nk = k1 - k0 + 1
     big = (ni > _SPAN) | (nj > _SPAN) | (nk > _SPAN)
     mask = _box_mask(min(ni, _SPAN), min(nj, _SPAN), min(nk, _SPAN))
     lo_x = np.int64(_BIG_LO) if big else np.int64(i0)
@@ -633,6 +623,23 @@ def _quad_box(rng, ranges, qu, qu1, qv, max_disc):
         np.int64(j0),
         np.int64(k0),
         mask if ok else np.int64(0),
+    )
+
+
+@njit(cache=True, inline="always")
+def _quad_box(rng, ranges, qu, qu1, qv, max_disc):
+    """:func:`_quad_node` of quad ``(qu, qv)`` whose right-hand column is ``qu1``; ``ranges``
+    holds the tiles of every pixel's band-end points (see pixel_ranges)."""
+    a = ranges[:, qv]
+    b = ranges[:, qv + 1]
+    return _quad_node(
+        corner_ranges(rng, qu, qu1, qv, max_disc)[4],
+        _min4(a[0, qu], a[0, qu1], b[0, qu], b[0, qu1]),
+        _min4(a[1, qu], a[1, qu1], b[1, qu], b[1, qu1]),
+        _min4(a[2, qu], a[2, qu1], b[2, qu], b[2, qu1]),
+        _max4(a[3, qu], a[3, qu1], b[3, qu], b[3, qu1]),
+        _max4(a[4, qu], a[4, qu1], b[4, qu], b[4, qu1]),
+        _max4(a[5, qu], a[5, qu1], b[5, qu], b[5, qu1]),
     )
 
 
@@ -803,27 +810,70 @@ def _band_kernels(kind: int):
         for bv in prange(-(-nqv // 2)):
             quads = np.empty((4, 2, nqu), np.int64)  # lo_x, lo_y, lo_z, mask per quad
             children = np.empty((4, 4), np.int64)
+            union = np.empty(cols, np.int64)
+            same = np.empty(cols, np.bool_)
             rows = min(2, nqv - 2 * bv)
             for r in range(rows):
                 qv = 2 * bv + r
+                # one view per row: a loop whose inlined helpers take arrays, or that
+                # indexes several dimensions, does not vectorise (about 4x slower)
+                a = rng[qv]
+                b = rng[qv + 1]
+                i0a, i0b = ranges[0, qv], ranges[0, qv + 1]
+                j0a, j0b = ranges[1, qv], ranges[1, qv + 1]
+                k0a, k0b = ranges[2, qv], ranges[2, qv + 1]
+                i1a, i1b = ranges[3, qv], ranges[3, qv + 1]
+                j1a, j1b = ranges[4, qv], ranges[4, qv + 1]
+                k1a, k1b = ranges[5, qv], ranges[5, qv + 1]
+                x0, y0, z0, m0 = quads[0, r], quads[1, r], quads[2, r], quads[3, r]
                 for qu in range(min(nqu, W - 1)):
-                    box = _quad_box(rng, ranges, qu, qu + 1, qv, max_disc)
-                    quads[0, r, qu] = box[0]
-                    quads[1, r, qu] = box[1]
-                    quads[2, r, qu] = box[2]
-                    quads[3, r, qu] = box[3]
+                    u1 = qu + 1
+                    x0[qu], y0[qu], z0[qu], m0[qu] = _quad_node(
+                        quad_valid(a[qu], a[u1], b[qu], b[u1], max_disc),
+                        _min4(i0a[qu], i0a[u1], i0b[qu], i0b[u1]),
+                        _min4(j0a[qu], j0a[u1], j0b[qu], j0b[u1]),
+                        _min4(k0a[qu], k0a[u1], k0b[qu], k0b[u1]),
+                        _max4(i1a[qu], i1a[u1], i1b[qu], i1b[u1]),
+                        _max4(j1a[qu], j1a[u1], j1b[qu], j1b[u1]),
+                        _max4(k1a[qu], k1a[u1], k1b[qu], k1b[u1]),
+                    )
                 if nqu == W:  # a wrapping sensor's quad between the last column and the first
                     box = _quad_box(rng, ranges, W - 1, 0, qv, max_disc)
                     for f in range(4):
                         quads[f, r, W - 1] = box[f]
+            # _merge's usual case first, without branches (vectorises): 2 x 2 valid quads,
+            # none big, their boxes from the same corner tile; the node's mask is the union
+            pairs = nqu // 2 if rows == 2 else 0
+            xa, ya, za, ma = quads[0, 0], quads[1, 0], quads[2, 0], quads[3, 0]
+            xb, yb, zb, mb = quads[0, 1], quads[1, 1], quads[2, 1], quads[3, 1]
+            for bu in range(pairs):
+                c0 = 2 * bu
+                c1 = c0 + 1
+                x = xa[c0]
+                y = ya[c0]
+                z = za[c0]
+                union[bu] = ma[c0] | ma[c1] | mb[c0] | mb[c1]
+                same[bu] = (
+                    (ma[c0] != 0) & (ma[c1] != 0) & (mb[c0] != 0) & (mb[c1] != 0) & (x != _BIG_LO)
+                    & (xa[c1] == x) & (xb[c0] == x) & (xb[c1] == x)
+                    & (ya[c1] == y) & (yb[c0] == y) & (yb[c1] == y)
+                    & (za[c1] == z) & (zb[c0] == z) & (zb[c1] == z)
+                )  # fmt: skip
             for bu in range(cols):
+                out = nodes[bv * cols + bu]
+                if bu < pairs and same[bu]:
+                    out[0] = xa[2 * bu]
+                    out[1] = ya[2 * bu]
+                    out[2] = za[2 * bu]
+                    out[3] = union[bu]
+                    continue
                 n = 0
                 for r in range(rows):
                     for qu in range(2 * bu, min(2 * bu + 2, nqu)):
                         for f in range(4):
                             children[n, f] = quads[f, r, qu]
                         n += 1
-                _merge(children, n, nodes[bv * cols + bu])
+                _merge(children, n, out)
 
     @njit(cache=True, parallel=True)
     def band_tiles(
