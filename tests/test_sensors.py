@@ -148,6 +148,16 @@ def test_kernel_projection_matches_reference(name: str) -> None:
     np.testing.assert_allclose(v[ok][inside], rv[ok][inside], atol=1e-9)
 
 
+@pytest.mark.parametrize("name", sorted(ALL))
+def test_a_pixels_points_are_evenly_spaced_in_range(name: str) -> None:
+    # allocation (engine.tiling._slab_tiles) steps slab corners along a pixel's points
+    sensor = sensor_from_dict(ALL[name])
+    u, v, d = _pixels(sensor, 300, 11)
+    d = 0.5 * sensor.max_range + 0.4 * d
+    near, mid, far = (sensor.unproject(u, v, s * d) for s in (0.5, 0.75, 1.0))
+    np.testing.assert_allclose(mid, 0.5 * (near + far), rtol=0.0, atol=1e-12)
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     fx=st.floats(10, 2000),
