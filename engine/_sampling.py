@@ -17,7 +17,9 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from . import _scratch
 from . import _sensor_kernels as _k
+from ._scratch import Scratch
 from ._sensor_kernels import P_H, P_W, in_image, wraps
 from .certainty import contribution
 
@@ -195,9 +197,13 @@ def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out):
             row[qu, 1] = upper[qu]
 
 
-def quad_bounds_array(kind, params, rng, eps0, eps1, falloff, max_disc) -> np.ndarray:
-    """:func:`quad_bounds` of a prepared range map, float32 (H - 1, quad_columns, 2)."""
-    out = np.empty((rng.shape[0] - 1, quad_columns(kind, params), 2), np.float32)
+def quad_bounds_array(
+    kind, params, rng, eps0, eps1, falloff, max_disc, scratch: Scratch | None = None
+) -> np.ndarray:
+    """:func:`quad_bounds` of a prepared range map, float32 (H - 1, quad_columns, 2) (in
+    ``scratch``'s array "quad_bounds" when given)."""
+    shape = (rng.shape[0] - 1, quad_columns(kind, params), 2)
+    out = _scratch.array(scratch, "quad_bounds", shape, np.float32)
     quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out)
     return out
 

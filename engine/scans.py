@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from . import _sampling
+from ._scratch import Scratch
 from .certainty import NoiseModel
 from .errors import InvalidInputError, InvalidScanError
 from .filters import FILTERS, filter_range
@@ -237,25 +238,33 @@ class PreparedScan:
         return r - eps - margin_m, r + eps + f
 
 
-def prepare_scan(scan: Scan, params: FusionParams) -> PreparedScan:
-    """Apply the filter and the no-return policy, and precompute what kernels need."""
-    rng = filter_range(scan.range_m, params.filter)
-    rng = np.array(rng, dtype=np.float32, copy=True)
+def prepare_scan(scan: Scan, params: FusionParams, scratch: Scratch | None = None) -> PreparedScan:
+    """Apply the filter and the no-return policy, and precompute what kernels need (the
+    per-quad bounds the tile tests' pyramid is reduced from go to ``scratch`` if given)."""
+    # the scan's own read-only array when neither the filter nor no-return pixels change
+    # it (a prepared scan stays cached while its volume lives: copies would double it)
+    rng = np.asarray(filter_range(scan.range_m, params.filter), dtype=np.float32)
+    rng.setflags(write=False)
+    surface = rng
     no_return = np.isposinf(rng)
-    surface = rng.copy()
-    surface[no_return] = np.nan
-    surface.setflags(write=False)
-    if params.no_return == "free":
-        rng[no_return] = scan.sensor.max_range
-        rng.setflags(write=False)
-    else:
-        rng = surface
+    if no_return.any():
+        surface = rng.copy()
+        surface[no_return] = np.nan
+        surface.setflags(write=False)
+        if params.no_return == "free":
+            rng = rng.copy()
+            rng[no_return] = scan.sensor.max_range
+            rng.setflags(write=False)
+        else:
+            rng = surface
     noise = scan.noise if scan.noise is not None else params.noise
     eps0, eps1, rho, falloff, shape, q_rho = noise.kernel_args()
     max_disc = -1.0 if params.max_discontinuity_m is None else params.max_discontinuity_m
     kind, sensor_params, table = scan.sensor.kernel_args()
     free, reach, levels = _sampling.block_pyramid(
-        _sampling.quad_bounds_array(kind, sensor_params, rng, eps0, eps1, falloff, max_disc)
+        _sampling.quad_bounds_array(
+            kind, sensor_params, rng, eps0, eps1, falloff, max_disc, scratch
+        )
     )
     R = scan.T_W_S[:3, :3]
     M = np.ascontiguousarray(R.T)

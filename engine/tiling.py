@@ -39,6 +39,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from . import _scratch
 from . import _sensor_kernels as _k
 from ._sampling import (
     PYRAMID_SPAN,
@@ -49,6 +50,7 @@ from ._sampling import (
     quad_valid,
     widened,
 )
+from ._scratch import Scratch
 from .certainty import SHAPE_LINEAR
 from .defaults import BAND_MARGIN_VOX
 from .grid import GridSpec, unique_keys
@@ -952,7 +954,7 @@ def _band_kernels(kind: int):
     return pixel_ranges, quad_nodes, band_tiles
 
 
-def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
+def _band_tile_keys(scan: PreparedScan, grid: GridSpec, scratch: Scratch | None) -> np.ndarray:
     h = grid.voxel_size_m
     T = grid.tile_size_vox
     margin = BAND_MARGIN_VOX * h
@@ -960,7 +962,7 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
     t = np.ascontiguousarray(scan.T_W_S[:3, 3])
     rng = scan.surface_m
     pixel_ranges, quad_nodes, band_tiles = _band_kernels(scan.kind)
-    ranges = np.empty((6, *rng.shape), np.int32)
+    ranges = _scratch.array(scratch, "pixel_ranges", (6, *rng.shape), np.int32)
     pixel_ranges(
         rng, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff, margin, h, T,
         ranges,
@@ -968,7 +970,8 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
     # the node pyramid: nodes of 2 x 2 quads, then 2 x 2 merges up to _TOP_NODES nodes
     nqu = int(quad_columns(scan.kind, scan.params))
     levels = pyramid_levels(-(-(rng.shape[0] - 1) // 2), -(-nqu // 2), _TOP_NODES)
-    nodes = np.empty((int(levels[-1, 0] + levels[-1, 1] * levels[-1, 2]), 4), np.int64)
+    n_nodes = int(levels[-1, 0] + levels[-1, 1] * levels[-1, 2])
+    nodes = _scratch.array(scratch, "nodes", (n_nodes, 4), np.int64)
     quad_nodes(rng, ranges, scan.params, scan.max_disc, nodes)
     for level in range(1, len(levels)):
         _merge_level(nodes, levels, level)
@@ -982,7 +985,7 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
     todo = np.arange(n_top, dtype=np.int64)
     starts = todo * _WALK_ROOM
     counts = np.zeros(n_top, np.int64)
-    keys = np.empty((n_top * _WALK_ROOM, 3), np.int64)
+    keys = _scratch.array(scratch, "walk_keys", (n_top * _WALK_ROOM, 3), np.int64)
     band_tiles(*args, todo, starts, starts + _WALK_ROOM, keys, counts)
     fits = counts <= _WALK_ROOM
     room = np.arange(_WALK_ROOM)[None, :] < np.where(fits, counts, 0)[:, None]
@@ -1064,18 +1067,19 @@ def _inside_roi(grid: GridSpec, keys: np.ndarray) -> np.ndarray:
     return np.all((keys >= lo) & (keys < hi), axis=1)
 
 
-def tiles_touched(scan: PreparedScan, grid: GridSpec) -> np.ndarray:
+def tiles_touched(scan: PreparedScan, grid: GridSpec, scratch: Scratch | None = None) -> np.ndarray:
     """Keys (int64 (n, 3), sorted, unique) of the tiles this scan allocates.
 
     Mapping mode: tiles near the measured surface (the band ``[-eps - margin, eps + falloff]``
     around every valid pixel quad; with bounds, only tiles of the region of interest).
-    Closed mode: tiles of the region of interest in view of the scan.
+    Closed mode: tiles of the region of interest in view of the scan. ``scratch`` lends the
+    working arrays (see :mod:`engine._scratch`).
     """
     if not math.isfinite(scan.reach_max):
         return np.zeros((0, 3), np.int64)
     if grid.mode == "closed":
         return _roi_tiles_in_view(scan, grid)
-    keys = _band_tile_keys(scan, grid)
+    keys = _band_tile_keys(scan, grid, scratch)
     if grid.bounds_m is not None:
         keys = keys[_inside_roi(grid, keys)]
     return keys

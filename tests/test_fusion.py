@@ -425,3 +425,24 @@ def test_kernels_compiled_once_load_from_the_cache_in_a_new_process(tmp_path):
     first = run_and_list()
     second = run_and_list()
     assert sorted(second - first) == []
+
+
+def test_a_prepared_scan_shares_the_range_map_unless_it_must_change_it() -> None:
+    # prepared scans stay cached while their volume lives: no copy when nothing changes
+    _, first = scenes.scans("pinhole_z", 1)[0]
+    scan = Scan(
+        np.where(np.isposinf(first.range_m), np.nan, first.range_m), first.T_W_S, first.sensor
+    )
+    prepared = prepare_scan(scan, _params())
+    assert prepared.range_m is scan.range_m and prepared.surface_m is scan.range_m
+    # no-return pixels: free space up to max_range for the range, NaN on the surface
+    rng = scan.range_m.copy()
+    rng[:5] = np.inf
+    late = Scan(rng, scan.T_W_S, scan.sensor)
+    prepared = prepare_scan(late, _params())
+    assert np.all(prepared.range_m[:5] == np.float32(scan.sensor.max_range))
+    assert np.all(np.isnan(prepared.surface_m[:5]))
+    assert np.array_equal(prepared.surface_m[5:], late.range_m[5:], equal_nan=True)
+    assert np.isposinf(late.range_m[:5]).all()  # the scan itself is untouched
+    for array in (prepared.range_m, prepared.surface_m, late.range_m):
+        assert not array.flags.writeable
