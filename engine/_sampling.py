@@ -17,9 +17,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from . import _scratch
 from . import _sensor_kernels as _k
-from ._scratch import Scratch
+from ._memory import Scratch, scratch_array
 from ._sensor_kernels import P_H, P_W, in_image, wraps
 from .certainty import contribution
 
@@ -203,7 +202,7 @@ def quad_bounds_array(
     """:func:`quad_bounds` of a prepared range map, float32 (H - 1, quad_columns, 2) (in
     ``scratch``'s array "quad_bounds" when given)."""
     shape = (rng.shape[0] - 1, quad_columns(kind, params), 2)
-    out = _scratch.array(scratch, "quad_bounds", shape, np.float32)
+    out = scratch_array(scratch, "quad_bounds", shape, np.float32)
     quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out)
     return out
 

@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
+from ._memory import Scratch, zeros
 from ._sampling import bilinear, quad_bounds_array, quad_index, quad_origin
-from ._scratch import Scratch
 from ._sensor_kernels import project_point
 from .certainty import SHAPE_LINEAR, contribution, pack
 from .errors import InvalidInputError, ScanNotFoundError
@@ -206,7 +206,7 @@ def integrate_seen(
 ) -> np.ndarray:
     """:func:`integrate_tiles` on rows already classified by :func:`classify_tiles` as in
     view (``free[n]``: the scan sees row ``rows[n]`` as free space throughout). ``scratch``
-    lends the per-quad bounds' array (see :mod:`engine._scratch`)."""
+    lends the per-quad bounds' array (see :mod:`engine._memory`)."""
     informed = np.zeros(len(keys), np.int64)
     if len(rows):
         kernel = _integrate_kernel(scan.kind, scan.shape)
@@ -332,9 +332,8 @@ class Volume:
         keys = unique_keys(np.concatenate([existing, created]))
         is_new = _isin(keys, created)
         # pass 2: integration; new scans into every tile in view, old scans into new tiles
-        data = np.zeros(
-            (len(keys), grid.tile_size_vox, grid.tile_size_vox, grid.tile_size_vox), np.int64
-        )
+        T = grid.tile_size_vox
+        data = zeros((len(keys), T, T, T), np.int64)  # ordinary pages: see engine._memory
         loaded = np.zeros(len(keys), np.bool_)
         changed = np.zeros(len(keys), np.bool_)
         updates = 0

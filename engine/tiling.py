@@ -39,8 +39,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from . import _scratch
 from . import _sensor_kernels as _k
+from ._memory import Scratch, scratch_array
 from ._sampling import (
     PYRAMID_SPAN,
     QUAD_BLOCK,
@@ -50,7 +50,6 @@ from ._sampling import (
     quad_valid,
     widened,
 )
-from ._scratch import Scratch
 from .certainty import SHAPE_LINEAR
 from .defaults import BAND_MARGIN_VOX
 from .grid import GridSpec, unique_keys
@@ -962,7 +961,7 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec, scratch: Scratch | None)
     t = np.ascontiguousarray(scan.T_W_S[:3, 3])
     rng = scan.surface_m
     pixel_ranges, quad_nodes, band_tiles = _band_kernels(scan.kind)
-    ranges = _scratch.array(scratch, "pixel_ranges", (6, *rng.shape), np.int32)
+    ranges = scratch_array(scratch, "pixel_ranges", (6, *rng.shape), np.int32)
     pixel_ranges(
         rng, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff, margin, h, T,
         ranges,
@@ -971,7 +970,7 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec, scratch: Scratch | None)
     nqu = int(quad_columns(scan.kind, scan.params))
     levels = pyramid_levels(-(-(rng.shape[0] - 1) // 2), -(-nqu // 2), _TOP_NODES)
     n_nodes = int(levels[-1, 0] + levels[-1, 1] * levels[-1, 2])
-    nodes = _scratch.array(scratch, "nodes", (n_nodes, 4), np.int64)
+    nodes = scratch_array(scratch, "nodes", (n_nodes, 4), np.int64)
     quad_nodes(rng, ranges, scan.params, scan.max_disc, nodes)
     for level in range(1, len(levels)):
         _merge_level(nodes, levels, level)
@@ -985,7 +984,7 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec, scratch: Scratch | None)
     todo = np.arange(n_top, dtype=np.int64)
     starts = todo * _WALK_ROOM
     counts = np.zeros(n_top, np.int64)
-    keys = _scratch.array(scratch, "walk_keys", (n_top * _WALK_ROOM, 3), np.int64)
+    keys = scratch_array(scratch, "walk_keys", (n_top * _WALK_ROOM, 3), np.int64)
     band_tiles(*args, todo, starts, starts + _WALK_ROOM, keys, counts)
     fits = counts <= _WALK_ROOM
     room = np.arange(_WALK_ROOM)[None, :] < np.where(fits, counts, 0)[:, None]
@@ -1073,7 +1072,7 @@ def tiles_touched(scan: PreparedScan, grid: GridSpec, scratch: Scratch | None = 
     Mapping mode: tiles near the measured surface (the band ``[-eps - margin, eps + falloff]``
     around every valid pixel quad; with bounds, only tiles of the region of interest).
     Closed mode: tiles of the region of interest in view of the scan. ``scratch`` lends the
-    working arrays (see :mod:`engine._scratch`).
+    working arrays (see :mod:`engine._memory`).
     """
     if not math.isfinite(scan.reach_max):
         return np.zeros((0, 3), np.int64)

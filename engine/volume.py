@@ -16,6 +16,7 @@ from typing import Protocol, cast
 
 import numpy as np
 
+from ._memory import zeros
 from .certainty import decode_logodds
 from .errors import InvalidGridError
 from .grid import Bounds, GridSpec
@@ -62,28 +63,42 @@ class TileStore(Protocol):
 
 
 class MemoryTileStore:
-    """Tiles in a dict: the in-memory twin of the Zarr store."""
+    """Tiles in memory: the in-memory twin of the Zarr store.
+
+    Voxel data live in one pool array of tiles (in ordinary pages: :mod:`engine._memory`),
+    indexed by a dict from key to slot; freed slots are reused, the pool doubles when full
+    and halves its spare room when three quarters are free. A write is one copy into the
+    pool: a 1 cm room batch used to make 6,185 separate 32 KB copies, 1.3 ms per frame.
+    """
 
     def __init__(self, tile_size: int) -> None:
         self.tile_size = int(tile_size)
-        self._data: dict[tuple[int, int, int], np.ndarray] = {}
+        T = self.tile_size
+        self._slot: dict[tuple[int, int, int], int] = {}
         self._owners: dict[tuple[int, int, int], frozenset[str]] = {}
+        self._pool = np.zeros((0, T, T, T), np.int64)
+        self._free: list[int] = []  # slots below len(self._slot) + len(self._free) not in use
 
     def __len__(self) -> int:
-        return len(self._data)
+        return len(self._slot)
 
     def keys(self) -> np.ndarray:
-        if not self._data:
+        if not self._slot:
             return np.zeros((0, 3), np.int64)
-        return np.array(sorted(self._data), dtype=np.int64).reshape(-1, 3)
+        return np.array(sorted(self._slot), dtype=np.int64).reshape(-1, 3)
+
+    def _slots(self, keys: np.ndarray) -> np.ndarray:
+        """Slot of each key, -1 where the tile is missing."""
+        return np.array([self._slot.get(key, -1) for key in _tuples(keys)], np.int64)
 
     def read(self, keys: np.ndarray) -> np.ndarray:
         T = self.tile_size
-        out = np.zeros((len(keys), T, T, T), np.int64)
-        for n, key in enumerate(_tuples(keys)):
-            tile = self._data.get(key)
-            if tile is not None:
-                out[n] = tile
+        slots = self._slots(keys)
+        out = np.zeros((len(slots), T, T, T), np.int64)
+        found = slots >= 0
+        if found.all():
+            return self._pool[slots]
+        out[found] = self._pool[slots[found]]
         return out
 
     def owners(self, keys: np.ndarray) -> list[frozenset[str]]:
@@ -93,16 +108,55 @@ class MemoryTileStore:
         T = self.tile_size
         if data.shape != (len(keys), T, T, T) or data.dtype != np.int64:
             raise ValueError(f"tile data must be int64 ({len(keys)}, {T}, {T}, {T})")
-        for key, tile, own in zip(_tuples(keys), data, owners, strict=True):
+        tuples = _tuples(keys)
+        if len(owners) != len(tuples):
+            raise ValueError(f"{len(owners)} owner sets for {len(tuples)} tiles")
+        for key, own in zip(tuples, owners, strict=True):
             if not own:
                 raise ValueError(f"tile {key} needs at least one owner")
-            self._data[key] = np.array(tile, copy=True)
-            self._owners[key] = frozenset(own)
+        # a key given twice keeps its last tile, as separate writes would
+        last = {key: n for n, key in enumerate(tuples)}
+        rows = np.fromiter(last.values(), np.int64, len(last))
+        new = [key for key in last if key not in self._slot]
+        self._reserve(len(new))
+        for key in new:
+            self._slot[key] = self._free.pop()
+        slots = np.array([self._slot[key] for key in last], np.int64)
+        self._pool[slots] = data if len(rows) == len(tuples) else data[rows]
+        for key, n in last.items():
+            self._owners[key] = frozenset(owners[n])
+
+    def _reserve(self, more: int) -> None:
+        """Make room for ``more`` new tiles in the free list, doubling the pool if needed."""
+        if more <= len(self._free):
+            return
+        used = len(self._pool)
+        size = max(used + more - len(self._free), 2 * used, 64)
+        pool = zeros((size, *self._pool.shape[1:]), np.int64)
+        pool[:used] = self._pool
+        self._pool = pool
+        # pop() hands out the lowest free slot first
+        self._free = list(range(size - 1, used - 1, -1)) + self._free
 
     def delete(self, keys: np.ndarray) -> None:
         for key in _tuples(keys):
-            self._data.pop(key, None)
+            slot = self._slot.pop(key, None)
+            if slot is not None:
+                self._free.append(slot)
             self._owners.pop(key, None)
+        if len(self._pool) > 64 and 4 * len(self._slot) < len(self._pool):
+            self._compact()
+
+    def _compact(self) -> None:
+        """Move the tiles to a pool of twice their number (after many deletions)."""
+        live = list(self._slot)
+        old = np.array([self._slot[key] for key in live], np.int64)
+        size = max(2 * len(live), 64)
+        pool = zeros((size, *self._pool.shape[1:]), np.int64)
+        pool[: len(live)] = self._pool[old]
+        self._pool = pool
+        self._slot = {key: n for n, key in enumerate(live)}
+        self._free = list(range(size - 1, len(live) - 1, -1))
 
 
 @dataclass(frozen=True, eq=False)
