@@ -378,7 +378,8 @@ class Volume:
         if len(to_load):
             data[to_load] = self.store.read(keys[to_load])
         written = data if len(rows) == len(keys) else data[rows]  # no copy in the usual case
-        self.store.write(keys[rows], written, [owners[r] for r in rows])
+        # the batch is not used again: a memory store may keep it rather than copy it
+        self.store.write(keys[rows], written, [owners[r] for r in rows], take=True)
         return IntegrationReport(
             changed=keys[changed], created=created, voxel_updates=updates, scans=len(new_ids)
         )

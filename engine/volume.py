@@ -53,8 +53,17 @@ class TileStore(Protocol):
         """Owner scan ids of each tile (empty for a missing tile)."""
         ...
 
-    def write(self, keys: np.ndarray, data: np.ndarray, owners: Sequence[frozenset[str]]) -> None:
-        """Create or replace tiles (each must have at least one owner)."""
+    def write(
+        self,
+        keys: np.ndarray,
+        data: np.ndarray,
+        owners: Sequence[frozenset[str]],
+        *,
+        take: bool = False,
+    ) -> None:
+        """Create or replace tiles (each must have at least one owner). With ``take`` the
+        caller hands ``data`` over (it will neither read nor write it again): a store may keep
+        the array itself instead of a copy."""
         ...
 
     def delete(self, keys: np.ndarray) -> None:
@@ -104,7 +113,14 @@ class MemoryTileStore:
     def owners(self, keys: np.ndarray) -> list[frozenset[str]]:
         return [self._owners.get(key, frozenset()) for key in _tuples(keys)]
 
-    def write(self, keys: np.ndarray, data: np.ndarray, owners: Sequence[frozenset[str]]) -> None:
+    def write(
+        self,
+        keys: np.ndarray,
+        data: np.ndarray,
+        owners: Sequence[frozenset[str]],
+        *,
+        take: bool = False,
+    ) -> None:
         T = self.tile_size
         if data.shape != (len(keys), T, T, T) or data.dtype != np.int64:
             raise ValueError(f"tile data must be int64 ({len(keys)}, {T}, {T}, {T})")
@@ -116,6 +132,13 @@ class MemoryTileStore:
                 raise ValueError(f"tile {key} needs at least one owner")
         # a key given twice keeps its last tile, as separate writes would
         last = {key: n for n, key in enumerate(tuples)}
+        if take and not self._slot and len(last) == len(tuples) and data.flags.c_contiguous:
+            # the first write to an empty store (a batch's fresh tiles): keep the array
+            self._pool = data
+            self._slot = dict(zip(tuples, range(len(tuples)), strict=True))
+            self._free = []
+            self._owners = {key: frozenset(own) for key, own in zip(tuples, owners, strict=True)}
+            return
         rows = np.fromiter(last.values(), np.int64, len(last))
         new = [key for key in last if key not in self._slot]
         self._reserve(len(new))

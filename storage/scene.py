@@ -571,7 +571,14 @@ class _TileReader:
         info = self._scene.catalog.tile_scans(self._scene.scene_id, pack_keys(keys))
         return [frozenset(s for s, own in info[p] if own) for p in pack_keys(keys).tolist()]
 
-    def write(self, keys: np.ndarray, data: np.ndarray, owners: Sequence[frozenset[str]]) -> None:
+    def write(
+        self,
+        keys: np.ndarray,
+        data: np.ndarray,
+        owners: Sequence[frozenset[str]],
+        *,
+        take: bool = False,
+    ) -> None:
         raise StoreError("tiles of a stored scene change through Scene methods only")
 
     def delete(self, keys: np.ndarray) -> None:

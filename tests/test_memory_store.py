@@ -66,3 +66,22 @@ def test_memory_store_refuses_bad_writes_and_keeps_what_it_had() -> None:
         store.write(keys, 2 * good, [frozenset({"a"})])
     assert np.array_equal(store.read(keys), good)
     assert store.owners(keys) == [frozenset({"a"}), frozenset({"b"})]
+
+
+def test_a_handed_over_batch_becomes_the_pool_of_an_empty_store() -> None:
+    rng = np.random.default_rng(5)
+    keys = np.array([[0, 0, 0], [3, -1, 2], [1, 1, 1]], np.int64)
+    batch = np.stack([_tile(rng) for _ in keys])
+    kept = batch.copy()
+    store = MemoryTileStore(T)
+    store.write(keys, batch, [frozenset({"a"})] * 3, take=True)
+    assert store.read(keys).tobytes() == kept.tobytes()
+    # the store grows from the adopted array, and a later handed-over batch is copied
+    more = np.array([[9, 9, 9], [0, 0, 0]], np.int64)
+    update = np.stack([_tile(rng) for _ in more])
+    store.write(more, update, [frozenset({"b"})] * 2, take=True)
+    update_kept = update.copy()
+    update[:] = 0
+    assert np.array_equal(store.read(more), update_kept)
+    assert np.array_equal(store.read(keys[1:]), kept[1:])
+    assert store.owners(keys) == [frozenset({"b"}), frozenset({"a"}), frozenset({"a"})]
