@@ -246,7 +246,7 @@ def prepare_scan(scan: Scan, params: FusionParams, scratch: Scratch | None = Non
     rng = np.asarray(filter_range(scan.range_m, params.filter), dtype=np.float32)
     rng.setflags(write=False)
     surface = rng
-    no_return = rng == np.inf  # np.isposinf is 10x slower on float32
+    no_return = rng == np.inf  # np.isposinf is about 3x slower on float32
     if no_return.any():
         surface = rng.copy()
         surface[no_return] = np.nan
