@@ -12,6 +12,7 @@ pyramid. One definition, three ways in.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -211,6 +212,12 @@ def pyramid_levels(rows: int, cols: int, top_nodes: int = 1) -> np.ndarray:
     """Layout of a pyramid of nodes stored flat, level after level: level 0 has ``rows`` x
     ``cols`` nodes, each level above covers 2 x 2 nodes of the one below, up to a level of
     at most ``top_nodes`` nodes. Returns int64 (L, 3): offset, rows, columns per level."""
+    return _pyramid_levels(int(rows), int(cols), int(top_nodes)).copy()
+
+
+@functools.lru_cache(maxsize=64)
+def _pyramid_levels(rows: int, cols: int, top_nodes: int) -> np.ndarray:
+    # one layout per image shape: building it cost 0.1 ms per scan, as much as a kernel
     shapes = [(rows, cols)]
     while shapes[-1][0] * shapes[-1][1] > top_nodes:
         shapes.append((-(-shapes[-1][0] // 2), -(-shapes[-1][1] // 2)))

@@ -23,7 +23,7 @@ import numpy as np
 from numba import njit, prange
 
 from ._memory import Scratch, zeros
-from ._sampling import bilinear, quad_bounds_array, quad_index, quad_origin
+from ._sampling import bilinear, quad_index, quad_origin
 from ._sensor_kernels import project_point
 from .certainty import SHAPE_LINEAR, contribution, pack
 from .errors import InvalidInputError, ScanNotFoundError
@@ -203,17 +203,17 @@ def integrate_seen(
     free: np.ndarray,
     sign: int,
     scratch: Scratch | None = None,
+    bounds: np.ndarray | None = None,
 ) -> np.ndarray:
     """:func:`integrate_tiles` on rows already classified by :func:`classify_tiles` as in
-    view (``free[n]``: the scan sees row ``rows[n]`` as free space throughout). ``scratch``
-    lends the per-quad bounds' array (see :mod:`engine._memory`)."""
+    view (``free[n]``: the scan sees row ``rows[n]`` as free space throughout). ``bounds``:
+    the scan's :meth:`~engine.scans.PreparedScan.quad_bounds` if the caller has them, else
+    they are computed (in ``scratch``'s array when given; see :mod:`engine._memory`)."""
     informed = np.zeros(len(keys), np.int64)
     if len(rows):
         kernel = _integrate_kernel(scan.kind, scan.shape)
-        bounds = quad_bounds_array(
-            scan.kind, scan.params, scan.range_m, scan.eps0, scan.eps1, scan.falloff,
-            scan.max_disc, scratch,
-        )  # fmt: skip
+        if bounds is None:
+            bounds = scan.quad_bounds(scratch)
         kernel(
             keys, data, np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(free),
             np.int64(sign), grid.tile_size_vox, grid.voxel_size_m, scan.M, scan.c, scan.params,
@@ -271,10 +271,10 @@ class Volume:
     def __contains__(self, scan_id: str) -> bool:
         return scan_id in self._scans
 
-    def _prepare(self, scan_id: str, scratch: Scratch | None = None) -> PreparedScan:
+    def _prepare(self, scan_id: str) -> PreparedScan:
         prepared = self._prepared.get(scan_id)
         if prepared is None:
-            prepared = prepare_scan(self._scans[scan_id], self.params, scratch)
+            prepared = prepare_scan(self._scans[scan_id], self.params)
             self._prepared[scan_id] = prepared
         return prepared
 
@@ -324,7 +324,7 @@ class Volume:
         # pass 1: allocation
         touched_by: dict[str, np.ndarray] = {}
         for scan_id in new_ids:
-            touched_by[scan_id] = tiles_touched(self._prepare(scan_id, scratch), grid, scratch)
+            touched_by[scan_id] = tiles_touched(self._prepare(scan_id), grid, scratch)
         all_touched = unique_keys(
             np.concatenate([np.zeros((0, 3), np.int64), *touched_by.values()])
         )
@@ -339,10 +339,14 @@ class Volume:
         updates = 0
         order = [(scan_id, True) for scan_id in new_ids] + [(s, False) for s in old_ids]
         for done, (scan_id, is_new_scan) in enumerate(order, 1):
-            prepared = self._prepare(scan_id, scratch)
+            prepared = self._prepare(scan_id)
             candidates = np.arange(len(keys)) if is_new_scan else np.flatnonzero(is_new)
             if len(candidates) == 0:
                 continue
+            bounds = None
+            if not prepared.has_pyramid:  # the bounds once, for the pyramid and the kernel
+                bounds = prepared.quad_bounds(scratch)
+                prepared.pyramid(bounds)
             status = classify_tiles(prepared, grid, keys[candidates])
             rows = candidates[status != OUT]
             to_load = rows[~loaded[rows] & ~is_new[rows]]
@@ -350,8 +354,9 @@ class Volume:
                 data[to_load] = self.store.read(keys[to_load])
                 loaded[to_load] = True
             informed = integrate_seen(
-                prepared, grid, keys, data, rows, status[status != OUT] == FREE, 1, scratch
-            )
+                prepared, grid, keys, data, rows, status[status != OUT] == FREE, 1, scratch,
+                bounds,
+            )  # fmt: skip
             changed |= informed > 0
             updates += int(informed.sum())
             if progress is not None and is_new_scan:

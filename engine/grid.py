@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from .defaults import TILE_SIZE_VOX
 from .errors import InvalidGridError
@@ -162,5 +163,38 @@ def unpack_keys(packed: np.ndarray) -> np.ndarray:
 
 
 def unique_keys(keys: np.ndarray) -> np.ndarray:
-    """Sorted unique tile keys (int64 (n, 3))."""
-    return unpack_keys(np.unique(pack_keys(keys)))
+    """Sorted unique tile keys (int64 (n, 3)): ``unpack_keys(np.unique(pack_keys(keys)))``
+    in one kernel (those NumPy calls cost about 0.2 ms per scan's allocation)."""
+    keys = np.ascontiguousarray(keys, np.int64).reshape(-1, 3)
+    out, inside = _unique_keys(keys, KEY_LIMIT)
+    if not inside:
+        raise InvalidGridError(
+            "bounds", f"the scene extends beyond {KEY_LIMIT} tiles from the origin"
+        )
+    return out
+
+
+@njit(cache=True)
+def _unique_keys(keys, limit):
+    # pack_keys, sort, drop repeats, unpack_keys; and whether every key is within ``limit``
+    packed = np.empty(keys.shape[0], np.int64)
+    inside = True
+    for m in range(keys.shape[0]):
+        a = keys[m, 0] + limit
+        b = keys[m, 1] + limit
+        c = keys[m, 2] + limit
+        inside &= (a > 0) & (a < 2 * limit) & (b > 0) & (b < 2 * limit)
+        inside &= (c > 0) & (c < 2 * limit)
+        packed[m] = (a << 42) | (b << 21) | c
+    packed.sort()
+    out = np.empty((packed.shape[0], 3), np.int64)
+    n = 0
+    mask = (1 << 21) - 1
+    for m in range(packed.shape[0]):
+        if m > 0 and packed[m] == packed[m - 1]:
+            continue
+        out[n, 0] = ((packed[m] >> 42) & mask) - limit
+        out[n, 1] = ((packed[m] >> 21) & mask) - limit
+        out[n, 2] = (packed[m] & mask) - limit
+        n += 1
+    return out[:n].copy(), inside

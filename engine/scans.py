@@ -217,16 +217,48 @@ class PreparedScan:
     shape: int
     q_rho: int
     max_disc: float  # < 0: no discontinuity test
-    # per-quad bounds reduced over blocks of quads, in a pyramid of levels, flat
-    # (engine._sampling.block_pyramid):
-    free: np.ndarray  # float64: nearer than this, a point is in free space
-    reach: np.ndarray  # float64: farther than this, nothing is informed
-    levels: np.ndarray  # int64 (L, 3): offset, rows and columns of each level
-    reach_max: float  # -inf when the scan informs nothing
+    # the tile tests' statistics, computed on first use (see pyramid)
+    _pyramid: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(
+        default_factory=list, repr=False
+    )
 
     @property
     def origin_W(self) -> np.ndarray:
         return self.T_W_S[:3, 3]
+
+    def quad_bounds(self, scratch: Scratch | None = None) -> np.ndarray:
+        """Per-quad bounds of the range map (:func:`engine._sampling.quad_bounds`), in
+        ``scratch``'s array when given."""
+        return _sampling.quad_bounds_array(
+            self.kind, self.params, self.range_m, self.eps0, self.eps1, self.falloff,
+            self.max_disc, scratch,
+        )  # fmt: skip
+
+    def pyramid(
+        self, bounds: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The per-quad bounds reduced over blocks of quads, in a pyramid of levels
+        (:func:`engine._sampling.block_pyramid`): ``free`` (float64: nearer than it, a point
+        is in free space), ``reach`` (float64: farther than it, nothing is informed) and
+        ``levels`` (int64 (L, 3)). Computed on first use, from ``bounds`` when the caller
+        has this scan's :meth:`quad_bounds` at hand: mapping-mode allocation needs no
+        pyramid, and the fusion pass computes the bounds anyway, so a batch computes them
+        once per scan instead of twice."""
+        if not self._pyramid:
+            self._pyramid.append(
+                _sampling.block_pyramid(self.quad_bounds() if bounds is None else bounds)
+            )
+        return self._pyramid[0]
+
+    @property
+    def has_pyramid(self) -> bool:
+        return bool(self._pyramid)
+
+    @property
+    def reach_max(self) -> float:
+        """The largest reach of any quad; -inf when the scan informs nothing."""
+        _, reach, levels = self.pyramid()
+        return float(reach[levels[-1, 0]])
 
     def noise_args(self) -> tuple[float, float, float, float, int, int]:
         return self.eps0, self.eps1, self.rho, self.falloff, self.shape, self.q_rho
@@ -238,9 +270,9 @@ class PreparedScan:
         return r - eps - margin_m, r + eps + f
 
 
-def prepare_scan(scan: Scan, params: FusionParams, scratch: Scratch | None = None) -> PreparedScan:
+def prepare_scan(scan: Scan, params: FusionParams) -> PreparedScan:
     """Apply the filter and the no-return policy, and precompute what kernels need (the
-    per-quad bounds the tile tests' pyramid is reduced from go to ``scratch`` if given)."""
+    tile tests' pyramid waits for its first use: :meth:`PreparedScan.pyramid`)."""
     # the scan's own read-only array when neither the filter nor no-return pixels change
     # it (a prepared scan stays cached while its volume lives: copies would double it)
     rng = np.asarray(filter_range(scan.range_m, params.filter), dtype=np.float32)
@@ -261,11 +293,6 @@ def prepare_scan(scan: Scan, params: FusionParams, scratch: Scratch | None = Non
     eps0, eps1, rho, falloff, shape, q_rho = noise.kernel_args()
     max_disc = -1.0 if params.max_discontinuity_m is None else params.max_discontinuity_m
     kind, sensor_params, table = scan.sensor.kernel_args()
-    free, reach, levels = _sampling.block_pyramid(
-        _sampling.quad_bounds_array(
-            kind, sensor_params, rng, eps0, eps1, falloff, max_disc, scratch
-        )
-    )
     R = scan.T_W_S[:3, :3]
     M = np.ascontiguousarray(R.T)
     c = np.ascontiguousarray(-M @ scan.T_W_S[:3, 3])
@@ -285,8 +312,4 @@ def prepare_scan(scan: Scan, params: FusionParams, scratch: Scratch | None = Non
         shape=shape,
         q_rho=q_rho,
         max_disc=max_disc,
-        free=free,
-        reach=reach,
-        levels=levels,
-        reach_max=float(reach[levels[-1, 0]]),
     )

@@ -30,6 +30,7 @@ from engine import (
 )
 from engine.defaults import COUNT_BITS, LOGIT_SCALE
 from engine.fusion import integrate_seen
+from engine.grid import KEY_LIMIT, unique_keys
 from engine.synth import make_dataset
 from engine.tiling import FREE, OUT, classify_tiles, tiles_touched
 from tests import reference, scenes
@@ -446,3 +447,36 @@ def test_a_prepared_scan_shares_the_range_map_unless_it_must_change_it() -> None
     assert np.isposinf(late.range_m[:5]).all()  # the scan itself is untouched
     for array in (prepared.range_m, prepared.surface_m, late.range_m):
         assert not array.flags.writeable
+
+
+def test_unique_keys_sorts_and_deduplicates_and_refuses_keys_beyond_the_limit() -> None:
+    rng = np.random.default_rng(3)
+    keys = np.concatenate(
+        [
+            rng.integers(-5, 5, (500, 3)),
+            [[KEY_LIMIT - 1, -(KEY_LIMIT - 1), 0], [-(KEY_LIMIT - 1), KEY_LIMIT - 1, 7]],
+        ]
+    ).astype(np.int64)
+    expected = np.unique(keys, axis=0)  # lexicographic rows
+    assert np.array_equal(unique_keys(keys), expected)
+    assert np.array_equal(unique_keys(keys[::-1]), expected)
+    assert unique_keys(np.zeros((0, 3), np.int64)).shape == (0, 3)
+    for bad in ([0, 0, KEY_LIMIT], [-KEY_LIMIT, 0, 0]):
+        with pytest.raises(InvalidGridError, match="^bounds: the scene extends beyond"):
+            unique_keys(np.array([[1, 2, 3], bad]))
+
+
+def test_a_prepared_scan_builds_its_tile_statistics_once_from_given_bounds() -> None:
+    # mapping allocation needs no pyramid; the fusion pass hands over the bounds it has
+    _, scan = scenes.scans("pinhole_z", 1)[0]
+    prepared = prepare_scan(scan, _params())
+    grid = GridSpec(0.05, 8, "mapping")
+    tiles_touched(prepared, grid)
+    assert not prepared.has_pyramid
+    bounds = prepared.quad_bounds()
+    first = prepared.pyramid(bounds)
+    assert prepared.pyramid() is first
+    fresh = prepare_scan(scan, _params())
+    for ours, theirs in zip(first, fresh.pyramid(), strict=True):
+        assert np.array_equal(ours, theirs)
+    assert prepared.reach_max == fresh.reach_max
