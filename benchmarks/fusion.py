@@ -66,6 +66,12 @@ def main() -> None:
             for v in (0.02, 0.01)
             for t in (8, 16, 32)
         ]
+    import numba
+
+    from engine._threads import threading_layer
+
+    # the children run with the same environment, hence the same layer
+    print(f"{numba.get_num_threads()} numba threads, '{threading_layer()}' threading layer")
     header = (
         f"{'mode':8} {'voxel':>6} {'tile':>4} {'frames':>6} {'time s':>7} {'frames/s':>8} "
         f"{'Mupd/s':>7} {'tiles':>7} {'tiles MB':>8} {'peak RSS MB':>11}"

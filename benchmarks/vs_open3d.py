@@ -146,10 +146,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     # numba picks its threading layer before Open3D loads its own TBB (else numba warns).
     import numba
 
+    from engine._threads import threading_layer
+
+    layer = threading_layer()
     print(
         f"room, 640x480 z-depth frames; rangefuse tiles {args.tile_size}^3, mapping mode, "
         f"eps 2 voxels; Open3D VoxelBlockGrid 8^3 blocks, trunc {TRUNC_VOXELS:g} voxels; "
-        f"{numba.get_num_threads()} numba threads, {os.cpu_count()} CPUs"
+        f"{numba.get_num_threads()} numba threads ('{layer}' layer), {os.cpu_count()} CPUs"
     )
     header = (
         f"{'voxel':>6} {'frames':>6} {'rf s':>7} {'rf f/s':>7} {'o3d s':>7} {'o3d f/s':>7} "

@@ -25,6 +25,7 @@ from numba import njit, prange
 from ._memory import Scratch, zeros
 from ._sampling import bilinear, quad_index, quad_origin
 from ._sensor_kernels import project_point
+from ._threads import warn_if_slow_threading
 from .certainty import SHAPE_LINEAR, contribution, pack
 from .errors import InvalidInputError, ScanNotFoundError
 from .grid import GridSpec, pack_keys, unique_keys
@@ -211,6 +212,7 @@ def integrate_seen(
     they are computed (in ``scratch``'s array when given; see :mod:`engine._memory`)."""
     informed = np.zeros(len(keys), np.int64)
     if len(rows):
+        warn_if_slow_threading()
         kernel = _integrate_kernel(scan.kind, scan.shape)
         if bounds is None:
             bounds = scan.quad_bounds(scratch)

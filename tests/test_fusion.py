@@ -480,3 +480,41 @@ def test_a_prepared_scan_builds_its_tile_statistics_once_from_given_bounds() -> 
     for ours, theirs in zip(first, fresh.pyramid(), strict=True):
         assert np.array_equal(ours, theirs)
     assert prepared.reach_max == fresh.reach_max
+
+
+_LAYER_PROBE = """
+import warnings
+from engine import FusionParams, GridSpec, NoiseModel, Volume
+from engine.synth import make_dataset
+data = make_dataset("room", views=2)
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    for _ in range(2):
+        Volume(GridSpec(0.08, 8, "mapping"), FusionParams(NoiseModel(eps_m=0.1))).add_many(
+            data.scans
+        )
+print(sum("workqueue" in str(w.message) for w in caught))
+"""
+
+
+@pytest.mark.parametrize(
+    ("env", "warnings_expected"),
+    [
+        # numba tries its layers in this order: workqueue first stands for a machine
+        # without OpenMP or TBB, where numba falls back to it silently
+        ({"NUMBA_THREADING_LAYER_PRIORITY": "workqueue tbb omp"}, 1),
+        ({"NUMBA_THREADING_LAYER": "workqueue"}, 0),  # asked for: no warning
+        ({"NUMBA_THREADING_LAYER_PRIORITY": "workqueue tbb omp", "NUMBA_NUM_THREADS": "1"}, 0),
+    ],
+)
+def test_fusion_warns_once_when_numba_falls_back_to_its_slow_threading_layer(
+    env: dict[str, str], warnings_expected: int
+) -> None:
+    done = subprocess.run(
+        [sys.executable, "-c", _LAYER_PROBE],
+        env={**os.environ, "NUMBA_NUM_THREADS": "2", **env},
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    assert int(done.stdout.split()[-1]) == warnings_expected
