@@ -26,7 +26,7 @@ from .certainty import contribution
 #: Quads per side of a block of the finest level of the statistics the tile tests read.
 QUAD_BLOCK = 4
 #: A pixel rectangle is tested against the finest level of the block pyramid at which it
-#: covers fewer than this many nodes per side (see :func:`block_pyramid`).
+#: covers fewer than this many nodes per side (see :func:`bounds_and_pyramid`).
 PYRAMID_SPAN = 4
 
 
@@ -159,7 +159,7 @@ def _bounds_of(r00, r01, r10, r11, eps0, eps1, falloff, max_disc):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out):
+def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out, free, reach):
     """Per pixel quad, two distances that settle most points without interpolating
     (``out`` float32 (H - 1, quad_columns, 2)):
 
@@ -171,6 +171,11 @@ def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out):
     and the largest corner. An invalid quad informs nothing: ``(-inf, -inf)``. Each bound is moved
     outwards by ``_BOUND_SLACK`` (absolute and relative) so that it errs on the safe side.
 
+    With non-empty ``free`` and ``reach`` (float64, one per block of ``QUAD_BLOCK`` x
+    ``QUAD_BLOCK`` quads, row-major), also level 0 of :func:`bounds_and_pyramid`: each
+    block's smallest lower and largest upper bound, folded while its rows are in cache (a
+    separate pass over the bounds cost more than computing them).
+
     A row of quads is computed from the two rows of pixels into two contiguous buffers, then
     interleaved: a loop that stores both bounds of a quad side by side does not vectorise
     (3.6x slower).
@@ -178,23 +183,50 @@ def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out):
     nqv = rng.shape[0] - 1
     nqu = quad_columns(kind, params)
     W = rng.shape[1]
-    for qv in prange(nqv):
-        a = rng[qv]
-        b = rng[qv + 1]
+    cols = -(-nqu // QUAD_BLOCK)
+    blocks = free.shape[0] > 0
+    for bv in prange(-(-nqv // QUAD_BLOCK)):
         lower = np.empty(nqu, np.float32)
         upper = np.empty(nqu, np.float32)
-        for qu in range(min(nqu, W - 1)):  # branch-free: vectorises
-            lower[qu], upper[qu] = _bounds_of(
-                a[qu], a[qu + 1], b[qu], b[qu + 1], eps0, eps1, falloff, max_disc
-            )
-        if nqu == W:  # a wrapping sensor's quad between the last column and the first
-            lower[W - 1], upper[W - 1] = _bounds_of(
-                a[W - 1], a[0], b[W - 1], b[0], eps0, eps1, falloff, max_disc
-            )
-        row = out[qv]
-        for qu in range(nqu):
-            row[qu, 0] = lower[qu]
-            row[qu, 1] = upper[qu]
+        # per column of quads, the extremes over the block's rows (padded to whole blocks)
+        lo = np.full(cols * QUAD_BLOCK, np.inf, np.float32)
+        hi = np.full(cols * QUAD_BLOCK, -np.inf, np.float32)
+        for qv in range(bv * QUAD_BLOCK, min(nqv, (bv + 1) * QUAD_BLOCK)):
+            a = rng[qv]
+            b = rng[qv + 1]
+            for qu in range(min(nqu, W - 1)):  # branch-free: vectorises
+                lower[qu], upper[qu] = _bounds_of(
+                    a[qu], a[qu + 1], b[qu], b[qu + 1], eps0, eps1, falloff, max_disc
+                )
+            if nqu == W:  # a wrapping sensor's quad between the last column and the first
+                lower[W - 1], upper[W - 1] = _bounds_of(
+                    a[W - 1], a[0], b[W - 1], b[0], eps0, eps1, falloff, max_disc
+                )
+            row = out[qv]
+            for qu in range(nqu):
+                row[qu, 0] = lower[qu]
+                row[qu, 1] = upper[qu]
+            if blocks:
+                for qu in range(nqu):
+                    lo[qu] = min(lo[qu], lower[qu])
+                    hi[qu] = max(hi[qu], upper[qu])
+        if blocks:
+            for bu in range(cols):
+                least = np.inf
+                most = -np.inf
+                for c in range(bu * QUAD_BLOCK, (bu + 1) * QUAD_BLOCK):
+                    least = min(least, lo[c])
+                    most = max(most, hi[c])
+                free[bv * cols + bu] = least
+                reach[bv * cols + bu] = most
+
+
+def _bounds_array(scratch: Scratch | None, kind, params, rng) -> np.ndarray:
+    shape = (rng.shape[0] - 1, quad_columns(kind, params), 2)
+    return scratch_array(scratch, "quad_bounds", shape, np.float32)
+
+
+_NO_BLOCKS = np.zeros(0)
 
 
 def quad_bounds_array(
@@ -202,10 +234,33 @@ def quad_bounds_array(
 ) -> np.ndarray:
     """:func:`quad_bounds` of a prepared range map, float32 (H - 1, quad_columns, 2) (in
     ``scratch``'s array "quad_bounds" when given)."""
-    shape = (rng.shape[0] - 1, quad_columns(kind, params), 2)
-    out = scratch_array(scratch, "quad_bounds", shape, np.float32)
-    quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out)
+    out = _bounds_array(scratch, kind, params, rng)
+    quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out, _NO_BLOCKS, _NO_BLOCKS)
     return out
+
+
+def bounds_and_pyramid(
+    kind, params, rng, eps0, eps1, falloff, max_disc, scratch: Scratch | None = None
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`quad_bounds_array` and the bounds reduced for tile tests: over blocks of
+    ``QUAD_BLOCK`` x ``QUAD_BLOCK`` quads (level 0), then over 2 x 2 nodes level by level up
+    to one node. The pyramid is flat arrays ``free`` (the smallest free-space bound: a
+    point of the node's pixels nearer than it is free space; ``-inf`` where a quad is
+    invalid) and ``reach`` (the largest reach: nothing farther is informed), and ``levels``
+    (int64 (L, 3): offset, rows, columns of each level).
+
+    Tile tests fold the nodes of the finest level at which a pixel rectangle covers fewer
+    than ``PYRAMID_SPAN`` nodes per side: a superset of its blocks, so the test stays
+    conservative, at a bounded cost whatever the rectangle's size.
+    """
+    out = _bounds_array(scratch, kind, params, rng)
+    levels = pyramid_levels(-(-out.shape[0] // QUAD_BLOCK), -(-out.shape[1] // QUAD_BLOCK))
+    size = int(levels[-1, 0] + levels[-1, 1] * levels[-1, 2])
+    free = np.empty(size)
+    reach = np.empty(size)
+    quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out, free, reach)
+    _reduce_levels(free, reach, levels)
+    return out, (free, reach, levels)
 
 
 def pyramid_levels(rows: int, cols: int, top_nodes: int = 1) -> np.ndarray:
@@ -226,62 +281,25 @@ def _pyramid_levels(rows: int, cols: int, top_nodes: int) -> np.ndarray:
     return np.array([(o, a, b) for o, (a, b) in zip(offsets, shapes, strict=True)], np.int64)
 
 
-@njit(cache=True, parallel=True)
-def _blocks_of_quads(bounds, free, reach):
-    # level 0 of the pyramid: QUAD_BLOCK x QUAD_BLOCK quads per node
-    nqv, nqu = bounds.shape[0], bounds.shape[1]
-    cols = -(-nqu // QUAD_BLOCK)
-    for bv in prange(-(-nqv // QUAD_BLOCK)):
-        for bu in range(cols):
-            lo = np.inf
-            hi = -np.inf
-            for qv in range(bv * QUAD_BLOCK, min(nqv, (bv + 1) * QUAD_BLOCK)):
-                for qu in range(bu * QUAD_BLOCK, min(nqu, (bu + 1) * QUAD_BLOCK)):
-                    lo = min(lo, bounds[qv, qu, 0])
-                    hi = max(hi, bounds[qv, qu, 1])
-            free[bv * cols + bu] = lo
-            reach[bv * cols + bu] = hi
-
-
 @njit(cache=True)
-def _reduce_level(free, reach, levels, level):
-    # level ``level`` of the pyramid from the one below it: each node covers 2 x 2 nodes
-    src, rows, cols = levels[level - 1]
-    dst, out_rows, out_cols = levels[level]
-    for i in range(out_rows):
-        for j in range(out_cols):
-            lo = np.inf
-            hi = -np.inf
-            for di in range(2):
-                for dj in range(2):
-                    if 2 * i + di < rows and 2 * j + dj < cols:
-                        k = src + (2 * i + di) * cols + 2 * j + dj
-                        lo = min(lo, free[k])
-                        hi = max(hi, reach[k])
-            free[dst + i * out_cols + j] = lo
-            reach[dst + i * out_cols + j] = hi
-
-
-def block_pyramid(bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The per-quad bounds (:func:`quad_bounds`) reduced for tile tests: over blocks of
-    ``QUAD_BLOCK`` x ``QUAD_BLOCK`` quads (level 0), then over 2 x 2 nodes level by level up
-    to one node. Returns flat arrays ``free`` (the smallest free-space bound: a point of
-    the node's pixels nearer than it is free space; ``-inf`` where a quad is invalid) and
-    ``reach`` (the largest reach: nothing farther is informed), and ``levels`` (int64
-    (L, 3): offset, rows, columns of each level).
-
-    Tile tests fold the nodes of the finest level at which a pixel rectangle covers fewer
-    than ``PYRAMID_SPAN`` nodes per side: a superset of its blocks, so the test stays
-    conservative, at a bounded cost whatever the rectangle's size.
-    """
-    levels = pyramid_levels(-(-bounds.shape[0] // QUAD_BLOCK), -(-bounds.shape[1] // QUAD_BLOCK))
-    size = int(levels[-1, 0] + levels[-1, 1] * levels[-1, 2])
-    free = np.empty(size)
-    reach = np.empty(size)
-    _blocks_of_quads(bounds, free, reach)
-    for level in range(1, len(levels)):
-        _reduce_level(free, reach, levels, level)
-    return free, reach, levels
+def _reduce_levels(free, reach, levels):
+    # the pyramid's levels above level 0: each node covers 2 x 2 nodes of the level below
+    # (one call: a call per level cost more than its work)
+    for level in range(1, levels.shape[0]):
+        src, rows, cols = levels[level - 1]
+        dst, out_rows, out_cols = levels[level]
+        for i in range(out_rows):
+            for j in range(out_cols):
+                lo = np.inf
+                hi = -np.inf
+                for di in range(2):
+                    for dj in range(2):
+                        if 2 * i + di < rows and 2 * j + dj < cols:
+                            k = src + (2 * i + di) * cols + 2 * j + dj
+                            lo = min(lo, free[k])
+                            hi = max(hi, reach[k])
+                free[dst + i * out_cols + j] = lo
+                reach[dst + i * out_cols + j] = hi
 
 
 @njit(cache=True, inline="always")

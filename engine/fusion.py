@@ -348,7 +348,6 @@ class Volume:
             bounds = None
             if not prepared.has_pyramid:  # the bounds once, for the pyramid and the kernel
                 bounds = prepared.quad_bounds(scratch)
-                prepared.pyramid(bounds)
             status = classify_tiles(prepared, grid, keys[candidates])
             rows = candidates[status != OUT]
             to_load = rows[~loaded[rows] & ~is_new[rows]]

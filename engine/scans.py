@@ -228,26 +228,27 @@ class PreparedScan:
 
     def quad_bounds(self, scratch: Scratch | None = None) -> np.ndarray:
         """Per-quad bounds of the range map (:func:`engine._sampling.quad_bounds`), in
-        ``scratch``'s array when given."""
-        return _sampling.quad_bounds_array(
+        ``scratch``'s array when given. The first call also builds the tile tests'
+        :meth:`pyramid` from them, in the same pass: mapping-mode allocation needs no
+        pyramid, and the fusion pass computes the bounds anyway, so a batch computes them
+        once per scan instead of twice."""
+        args = (
             self.kind, self.params, self.range_m, self.eps0, self.eps1, self.falloff,
             self.max_disc, scratch,
         )  # fmt: skip
+        if self._pyramid:
+            return _sampling.quad_bounds_array(*args)
+        bounds, pyramid = _sampling.bounds_and_pyramid(*args)
+        self._pyramid.append(pyramid)
+        return bounds
 
-    def pyramid(
-        self, bounds: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def pyramid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The per-quad bounds reduced over blocks of quads, in a pyramid of levels
-        (:func:`engine._sampling.block_pyramid`): ``free`` (float64: nearer than it, a point
-        is in free space), ``reach`` (float64: farther than it, nothing is informed) and
-        ``levels`` (int64 (L, 3)). Computed on first use, from ``bounds`` when the caller
-        has this scan's :meth:`quad_bounds` at hand: mapping-mode allocation needs no
-        pyramid, and the fusion pass computes the bounds anyway, so a batch computes them
-        once per scan instead of twice."""
+        (:func:`engine._sampling.bounds_and_pyramid`): ``free`` (float64: nearer than it, a
+        point is in free space), ``reach`` (float64: farther than it, nothing is informed)
+        and ``levels`` (int64 (L, 3)). Computed on first use (see :meth:`quad_bounds`)."""
         if not self._pyramid:
-            self._pyramid.append(
-                _sampling.block_pyramid(self.quad_bounds() if bounds is None else bounds)
-            )
+            self.quad_bounds()
         return self._pyramid[0]
 
     @property

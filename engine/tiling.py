@@ -11,7 +11,7 @@ volume does not depend on the order in which scans arrive):
   rectangle (exact corner projection for pinhole and orthographic sensors, the
   circumscribed sphere for spherical and cylindrical ones) and compared with
   block statistics of the pixel quads under it (farthest informed distance,
-  free-space bound; :func:`engine._sampling.block_pyramid`). A pinhole box
+  free-space bound; :func:`engine._sampling.bounds_and_pyramid`). A pinhole box
   with all corners outside one side of the image's pyramid is ``OUT`` too:
   a box across the sensor's plane ``z = 0`` has no bounded rectangle. A tile
   is *in view* unless it is ``OUT``.
@@ -561,21 +561,46 @@ def _merge(children, n, out):
 
 
 @njit(cache=True, parallel=True)
-def _merge_level(nodes, levels, level):
-    """Level ``level`` of the node pyramid of :func:`tiles_touched` from the one below (see
-    :func:`_merge`): each node covers 2 x 2 nodes (layout: ``_sampling.pyramid_levels``)."""
-    src, ch, cw = levels[level - 1]
-    dst, ph, pw = levels[level]
-    for i in prange(ph):
-        children = np.empty((4, 4), np.int64)
-        for j in range(pw):
-            n = 0
-            for di in range(2):
-                for dj in range(2):
-                    if 2 * i + di < ch and 2 * j + dj < cw:
-                        children[n] = nodes[src + (2 * i + di) * cw + 2 * j + dj]
-                        n += 1
-            _merge(children, n, nodes[dst + i * pw + j])
+def _merge_levels(nodes, levels):
+    """The levels above level 0 of the node pyramid of :func:`tiles_touched`, each from the
+    one below (see :func:`_merge`): a node covers 2 x 2 nodes (layout:
+    ``_sampling.pyramid_levels``). One call for all levels: a call per level cost more
+    than the levels above the first."""
+    for level in range(1, levels.shape[0]):
+        src, ch, cw = levels[level - 1]
+        dst, ph, pw = levels[level]
+        for i in prange(ph):
+            children = np.empty((4, 4), np.int64)
+            a = nodes[src + 2 * i * cw : src + (2 * i + 1) * cw]
+            b = nodes[src + (2 * i + 1) * cw : src + (2 * i + 2) * cw]
+            pairs = cw // 2 if 2 * i + 1 < ch else 0
+            for j in range(pw):
+                out = nodes[dst + i * pw + j]
+                if j < pairs:  # _merge's usual case first, without branches
+                    c0 = 2 * j
+                    c1 = c0 + 1
+                    x = a[c0, 0]
+                    y = a[c0, 1]
+                    z = a[c0, 2]
+                    same = (
+                        (a[c0, 3] != 0) & (a[c1, 3] != 0) & (b[c0, 3] != 0) & (b[c1, 3] != 0)
+                        & (x != _BIG_LO) & (a[c1, 0] == x) & (b[c0, 0] == x) & (b[c1, 0] == x)
+                        & (a[c1, 1] == y) & (b[c0, 1] == y) & (b[c1, 1] == y)
+                        & (a[c1, 2] == z) & (b[c0, 2] == z) & (b[c1, 2] == z)
+                    )  # fmt: skip
+                    if same:
+                        out[0] = x
+                        out[1] = y
+                        out[2] = z
+                        out[3] = a[c0, 3] | a[c1, 3] | b[c0, 3] | b[c1, 3]
+                        continue
+                n = 0
+                for di in range(2):
+                    for dj in range(2):
+                        if 2 * i + di < ch and 2 * j + dj < cw:
+                            children[n] = nodes[src + (2 * i + di) * cw + 2 * j + dj]
+                            n += 1
+                _merge(children, n, out)
 
 
 @njit(cache=True, inline="always")
@@ -973,8 +998,7 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec, scratch: Scratch | None)
     n_nodes = int(levels[-1, 0] + levels[-1, 1] * levels[-1, 2])
     nodes = scratch_array(scratch, "nodes", (n_nodes, 4), np.int64)
     quad_nodes(rng, ranges, scan.params, scan.max_disc, nodes)
-    for level in range(1, len(levels)):
-        _merge_level(nodes, levels, level)
+    _merge_levels(nodes, levels)
     args = (
         rng, ranges, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff,
         scan.max_disc, margin, h, T, nodes, levels,

@@ -28,6 +28,7 @@ from engine import (
     prepare_scan,
     tiling,
 )
+from engine._sampling import QUAD_BLOCK
 from engine.defaults import COUNT_BITS, LOGIT_SCALE
 from engine.fusion import integrate_seen
 from engine.grid import KEY_LIMIT, unique_keys
@@ -466,20 +467,46 @@ def test_unique_keys_sorts_and_deduplicates_and_refuses_keys_beyond_the_limit() 
             unique_keys(np.array([[1, 2, 3], bad]))
 
 
-def test_a_prepared_scan_builds_its_tile_statistics_once_from_given_bounds() -> None:
-    # mapping allocation needs no pyramid; the fusion pass hands over the bounds it has
-    _, scan = scenes.scans("pinhole_z", 1)[0]
-    prepared = prepare_scan(scan, _params())
-    grid = GridSpec(0.05, 8, "mapping")
-    tiles_touched(prepared, grid)
+def _reference_pyramid(bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    # blocks of QUAD_BLOCK x QUAD_BLOCK quads, then 2 x 2 nodes per level up to one node
+    free = [bounds[..., 0].astype(np.float64)]
+    reach = [bounds[..., 1].astype(np.float64)]
+    step = QUAD_BLOCK
+    while True:
+        for levels, pad, fold in ((free, np.inf, np.min), (reach, -np.inf, np.max)):
+            a = levels[-1]
+            rows, cols = -(-a.shape[0] // step), -(-a.shape[1] // step)
+            padded = np.full((rows * step, cols * step), pad)
+            padded[: a.shape[0], : a.shape[1]] = a
+            levels.append(fold(padded.reshape(rows, step, cols, step), axis=(1, 3)))
+        step = 2
+        if free[-1].size == 1:
+            break
+    return (
+        np.concatenate([a.ravel() for a in free[1:]]),
+        np.concatenate([a.ravel() for a in reach[1:]]),
+    )
+
+
+@pytest.mark.parametrize("sensor", ["pinhole_z", "spherical"])
+def test_a_prepared_scan_builds_its_tile_statistics_with_its_first_bounds(sensor: str) -> None:
+    # mapping allocation needs no pyramid; the fusion pass computes the bounds, and the
+    # pyramid with them (in partial blocks too: 47 x 39 quads, and a wrapping 180 x 23)
+    _, scan = scenes.scans(sensor, 1)[0]
+    prepared = prepare_scan(scan, _params(max_discontinuity_m=0.3))
+    tiles_touched(prepared, GridSpec(0.05, 8, "mapping"))
     assert not prepared.has_pyramid
-    bounds = prepared.quad_bounds()
-    first = prepared.pyramid(bounds)
+    bounds = prepared.quad_bounds().copy()
+    assert prepared.has_pyramid
+    free, reach, levels = first = prepared.pyramid()
+    assert np.array_equal(prepared.quad_bounds(), bounds)
     assert prepared.pyramid() is first
-    fresh = prepare_scan(scan, _params())
-    for ours, theirs in zip(first, fresh.pyramid(), strict=True):
-        assert np.array_equal(ours, theirs)
-    assert prepared.reach_max == fresh.reach_max
+    expected_free, expected_reach = _reference_pyramid(bounds)
+    assert np.array_equal(free, expected_free)
+    assert np.array_equal(reach, expected_reach)
+    assert levels[-1, 1] * levels[-1, 2] == 1
+    assert prepared.reach_max == reach[-1] == bounds[..., 1].max()
+    assert np.isfinite(bounds[..., 0]).any() and np.isinf(bounds[..., 0]).any()
 
 
 _LAYER_PROBE = """
