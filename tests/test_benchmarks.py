@@ -44,5 +44,11 @@ def test_out_of_core_benchmark_smoke(tmp_path):
 @pytest.mark.slow
 @pytest.mark.skipif(importlib.util.find_spec("open3d") is None, reason="needs the bench extra")
 def test_vs_open3d_benchmark_smoke():
-    out = _run("vs_open3d.py", "--quick")
-    assert "ratio" in out
+    out = _run("vs_open3d.py", "--quick", "--rounds", "2")
+    rounds = [line.split() for line in out.splitlines() if line.startswith(" 0.040 ")]
+    assert [int(fields[1]) for fields in rounds] == [1, 2]
+    ratios = [float(fields[7]) for fields in rounds]
+    summary = next(line for line in out.splitlines() if "median ratio" in line)
+    median = float(summary.split("median ratio ")[1].split()[0])
+    assert abs(median - sum(ratios) / 2) <= 0.011  # of two rounds: their mean, rounded
+    assert "over 2 round(s)" in summary
