@@ -16,7 +16,10 @@ import functools
 import math
 
 import numpy as np
-from numba import njit, prange
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from . import _sensor_kernels as _k
 from ._memory import Scratch, scratch_array
@@ -84,6 +87,40 @@ def bilinear(rng, qu, qv, u, v):
     r10 = rng[qv + 1, qu]
     r11 = rng[qv + 1, qu1]
     return (1.0 - fv) * ((1.0 - fu) * r00 + fu * r01) + fv * ((1.0 - fu) * r10 + fu * r11)
+
+
+@intrinsic
+def _prefetch(typingctx, array, i, j):
+    """Start loading the cache line that holds ``array[i, j]`` (a 2-D array; the indices in
+    bounds) and go on: LLVM's ``prefetch`` intrinsic, for reading, into every cache level
+    (``prefetcht0`` on x86). It never faults and changes no value."""
+    sig = types.void(array, i, j)
+
+    def codegen(context, builder, signature, args):
+        array_type = signature.args[0]
+        ary = context.make_array(array_type)(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(
+            context, builder, array_type, ary, [args[1], args[2]], wraparound=False
+        )
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [ptr.type, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        # read (0), keep in all levels (3), data cache (1)
+        builder.call(fn, [ptr, ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@njit(cache=True, inline="always")
+def prefetch_quad(kind, params, rng, u, v):
+    """Start loading the two rows of the quad around ``(u, v)`` (in the image) that
+    :func:`bilinear` will read: the fusion kernel queues its band points in one pass and
+    interpolates them in the next, and the range map's lines missing from cache cost that
+    pass half its time (0.4 of 0.7 ms per 2 cm room frame)."""
+    qu, qv = quad_origin(kind, params, u, v)
+    _prefetch(rng, qv, qu)
+    _prefetch(rng, qv + 1, qu)
 
 
 @njit(cache=True, inline="always")

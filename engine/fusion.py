@@ -23,7 +23,7 @@ import numpy as np
 from numba import njit, prange
 
 from ._memory import Scratch, zeros
-from ._sampling import bilinear, quad_index, quad_origin
+from ._sampling import bilinear, prefetch_quad, quad_index, quad_origin
 from ._sensor_kernels import project_point
 from ._threads import warn_if_slow_threading
 from .certainty import SHAPE_LINEAR, contribution, pack
@@ -59,7 +59,8 @@ def _integrate_kernel(kind: int, shape: int):
        space takes ``logit(rho)`` at once, points beyond the reach nothing; the rest, the
        band, is queued with its pixel coordinates and distance;
     3. over the tile's queue: the bilinear range, then the certainty (vectorised), then
-       the additions.
+       the additions. Pass 2 prefetches each queued point's range-map corners
+       (:func:`engine._sampling.prefetch_quad`), so that pass 3 finds them in cache.
 
     A queued point's quad is valid (an invalid quad's reach is ``-inf``), so pass 3 needs
     none of :func:`engine._sampling.sample_range`'s tests: it gives the same values.
@@ -136,11 +137,14 @@ def _integrate_kernel(kind: int, shape: int):
                         tile[base + m] += free_value
                         count += 1
                     elif d <= flat_bounds[2 * q + 1]:
+                        u = slab_u[m]
+                        v = slab_v[m]
                         at[queued] = base + m
-                        band_u[queued] = slab_u[m]
-                        band_v[queued] = slab_v[m]
+                        band_u[queued] = u
+                        band_v[queued] = v
                         band_d[queued] = d
                         queued += 1
+                        prefetch_quad(kind, params, rng, u, v)  # pass 3 reads its corners
             for m in range(queued):  # pass 3
                 u = band_u[m]
                 v = band_v[m]
