@@ -103,10 +103,11 @@ def _prefetch(typingctx, array, i, j):
             context, builder, array_type, ary, [args[1], args[2]], wraparound=False
         )
         i32 = ir.IntType(32)
-        fnty = ir.FunctionType(ir.VoidType(), [ptr.type, i32, i32, i32])
+        byte_ptr = ir.IntType(8).as_pointer()  # one declaration whatever the array's dtype
+        fnty = ir.FunctionType(ir.VoidType(), [byte_ptr, i32, i32, i32])
         fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
-        # read (0), keep in all levels (3), data cache (1)
-        builder.call(fn, [ptr, ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
+        read, all_levels, data_cache = (ir.Constant(i32, flag) for flag in (0, 3, 1))
+        builder.call(fn, [builder.bitcast(ptr, byte_ptr), read, all_levels, data_cache])
         return context.get_dummy_value()
 
     return sig, codegen
