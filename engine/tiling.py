@@ -672,12 +672,13 @@ def _quad_box(rng, ranges, qu, qu1, qv, max_disc):
 
 @njit(cache=True)
 def _node_points(
-    kind, rng, qu, qv, a0, a1, b0, b1, params, table, R, t, eps0, eps1, falloff, margin, corners
-):
+    kind, rng, qu, qv, a0, a1, b0, b1, params, table, R, t, eps0, eps1, falloff, margin, corners,
+    points,
+):  # fmt: skip
     # Band-end points of the corners of the sub-quad [a0, a1] x [b0, b1] of quad
     # (qu, qv): rows 0..3 at the near end, 4..7 at the far end; row k has du = k & 1,
-    # dv = k >> 1. Returns the band's range interval over the sub-quad: both ends are
-    # monotone in the bilinear range, so they are extreme at corners.
+    # dv = k >> 1 (only with ``points``). Returns the band's range interval over the
+    # sub-quad: both ends are monotone in the bilinear range, so they are extreme at corners.
     qu1 = qu + 1 if qu + 1 < rng.shape[1] else 0
     r00 = rng[qv, qu]
     r01 = rng[qv, qu1]
@@ -695,9 +696,24 @@ def _node_points(
         far = r + eps + f
         lo = min(lo, near)
         hi = max(hi, far)
-        _world(kind, R, t, params, table, qu + fu, qv + fv, near, corners, k)
-        _world(kind, R, t, params, table, qu + fu, qv + fv, far, corners, 4 + k)
+        if points:
+            _world(kind, R, t, params, table, qu + fu, qv + fv, near, corners, k)
+            _world(kind, R, t, params, table, qu + fu, qv + fv, far, corners, 4 + k)
     return lo, hi
+
+
+@njit(cache=True, inline="always")
+def _extremes(corners, first):
+    # per axis, the least and the greatest coordinate of the four points corners[first:+4]
+    c = corners[first : first + 4]
+    return (
+        _min4(c[0, 0], c[1, 0], c[2, 0], c[3, 0]),
+        _min4(c[0, 1], c[1, 1], c[2, 1], c[3, 1]),
+        _min4(c[0, 2], c[1, 2], c[2, 2], c[3, 2]),
+        _max4(c[0, 0], c[1, 0], c[2, 0], c[3, 0]),
+        _max4(c[0, 1], c[1, 1], c[2, 1], c[3, 1]),
+        _max4(c[0, 2], c[1, 2], c[2, 2], c[3, 2]),
+    )
 
 
 @njit(cache=True)
@@ -711,12 +727,11 @@ def _slab_tiles(
     # are affine in range in every sensor model (tests/test_sensors.py checks it), so a
     # slab's far corners are stepped from the two ends (rows 8..11: the near ends, 12..15:
     # near to far) instead of unprojected: the same points but for rounding, far below
-    # the tile tests' slack.
+    # the tile tests' slack. Rows 4..7 hold the far ends already (_quad_tiles).
     for k in range(4):
         fu = a1 if k & 1 else a0
         fv = b1 if k >> 1 else b0
         _world(kind, R, t, params, table, qu + fu, qv + fv, lo, corners, k)
-        _world(kind, R, t, params, table, qu + fu, qv + fv, hi, corners, 4 + k)
     length = 0.0
     for k in range(4):
         d2 = 0.0
@@ -727,19 +742,23 @@ def _slab_tiles(
         length = max(length, math.sqrt(d2))
     n = min(max(int(math.ceil(length / (0.5 * T * h))), 1), _MAX_SLABS)
     last = (_BIG_LO, _BIG_LO, _BIG_LO, _BIG_LO, _BIG_LO, _BIG_LO)
+    # a slab's box from the extremes of its two ends, each end's computed once (the same
+    # box as that of its 8 corners: min and max are exact)
+    near = _extremes(corners, 0)
     for s in range(1, n + 1):
         f = s / n
         for k in range(4):
             for ax in range(3):
                 corners[4 + k, ax] = corners[8 + k, ax] + f * corners[12 + k, ax]
-        _box_of(corners, box)
+        far = _extremes(corners, 4)
+        for ax in range(3):
+            box[ax] = min(near[ax], far[ax])
+            box[3 + ax] = max(near[3 + ax], far[3 + ax])
         span = _tile_range(box, h, T)
         if span != last:  # consecutive slabs often cover the same tiles
             count = _emit(span, keys, count, seen)
             last = span
-        for k in range(4):
-            for ax in range(3):
-                corners[k, ax] = corners[4 + k, ax]
+        near = far
     return count
 
 
@@ -758,30 +777,38 @@ def _quad_tiles(
     stack[0, 2] = 0.0
     stack[0, 3] = 1.0
     top = 1
+    span = (_BIG_LO, _BIG_LO, _BIG_LO, _BIG_LO, _BIG_LO, _BIG_LO)
+    root = True
     while top > 0:
         top -= 1
         a0 = stack[top, 0]
         a1 = stack[top, 1]
         b0 = stack[top, 2]
         b1 = stack[top, 3]
+        # the whole quad spans more than _SPAN tiles (the same points as its node's box):
+        # its range interval is all it needs of them
         lo, hi = _node_points(
             kind, rng, qu, qv, a0, a1, b0, b1, params, table, R, t, eps0, eps1, falloff, margin,
-            corners,
+            corners, not root,
         )  # fmt: skip
-        _box_of(corners, box)
-        span = _tile_range(box, h, T)
-        if span[3] - span[0] <= 1 and span[4] - span[1] <= 1 and span[5] - span[2] <= 1:
-            count = _emit(span, keys, count, seen)
-            continue
-        # the piece's width across its frustum at the far end of its range interval
-        _world(kind, R, t, params, table, qu + a0, qv + b0, hi, corners, 0)
-        _world(kind, R, t, params, table, qu + a1, qv + b0, hi, corners, 1)
-        _world(kind, R, t, params, table, qu + a0, qv + b1, hi, corners, 2)
+        if not root:
+            _box_of(corners, box)
+            span = _tile_range(box, h, T)
+            if span[3] - span[0] <= 1 and span[4] - span[1] <= 1 and span[5] - span[2] <= 1:
+                count = _emit(span, keys, count, seen)
+                continue
+        root = False
+        # the piece's width across its frustum at the far end of its range interval, from
+        # the far corners that _slab_tiles needs too
+        for k in range(4):
+            fu = a1 if k & 1 else a0
+            fv = b1 if k >> 1 else b0
+            _world(kind, R, t, params, table, qu + fu, qv + fv, hi, corners, 4 + k)
         wide_u = 0.0
         wide_v = 0.0
         for ax in range(3):
-            wide_u += (corners[1, ax] - corners[0, ax]) ** 2
-            wide_v += (corners[2, ax] - corners[0, ax]) ** 2
+            wide_u += (corners[5, ax] - corners[4, ax]) ** 2
+            wide_v += (corners[6, ax] - corners[4, ax]) ** 2
         if max(wide_u, wide_v) <= (0.5 * T * h) ** 2:
             count = _slab_tiles(
                 kind, qu, qv, a0, a1, b0, b1, lo, hi, params, table, R, t, h, T, keys, count,
