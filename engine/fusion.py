@@ -23,7 +23,7 @@ import numpy as np
 from numba import njit, prange
 
 from ._memory import Scratch, zeros
-from ._sampling import _prefetch, bilinear, prefetch_quad, quad_index, quad_origin
+from ._sampling import bilinear, prefetch, prefetch_quad, quad_index, quad_origin
 from ._sensor_kernels import project_point
 from ._threads import warn_if_slow_threading
 from .certainty import SHAPE_LINEAR, contribution, pack
@@ -122,7 +122,7 @@ def _integrate_kernel(kind: int, shape: int):
                 if a + 1 < T:  # the next slab's voxels, one prefetch per cache line
                     following = data[row, a + 1]
                     for first in range(0, TT, _LINE_VOXELS):
-                        _prefetch(following, first // T, first % T)
+                        prefetch(following, first // T, first % T)
                 for m in range(TT):  # pass 1
                     y = slab_y[m]
                     z = slab_z[m]

@@ -560,6 +560,21 @@ def _merge(children, n, out):
     out[3] = -1 if big else mask
 
 
+@njit(cache=True, inline="always")
+def _usual_merge(x0, y0, z0, m0, x1, y1, z1, m1, x2, y2, z2, m2, x3, y3, z3, m3):
+    """:func:`_merge`'s usual case, without branches (loops calling it vectorise): four
+    children ``(lo_x, lo_y, lo_z, mask)`` with band, none big, all from the same corner
+    tile. Returns whether that holds, and the union of their masks (then the merged
+    node's mask, its corner that of the first child)."""
+    same = (
+        (m0 != 0) & (m1 != 0) & (m2 != 0) & (m3 != 0) & (x0 != _BIG_LO)
+        & (x1 == x0) & (x2 == x0) & (x3 == x0)
+        & (y1 == y0) & (y2 == y0) & (y3 == y0)
+        & (z1 == z0) & (z2 == z0) & (z3 == z0)
+    )  # fmt: skip
+    return same, m0 | m1 | m2 | m3
+
+
 @njit(cache=True, parallel=True)
 def _merge_levels(nodes, levels):
     """The levels above level 0 of the node pyramid of :func:`tiles_touched`, each from the
@@ -576,23 +591,20 @@ def _merge_levels(nodes, levels):
             pairs = cw // 2 if 2 * i + 1 < ch else 0
             for j in range(pw):
                 out = nodes[dst + i * pw + j]
-                if j < pairs:  # _merge's usual case first, without branches
-                    c0 = 2 * j
-                    c1 = c0 + 1
-                    x = a[c0, 0]
-                    y = a[c0, 1]
-                    z = a[c0, 2]
-                    same = (
-                        (a[c0, 3] != 0) & (a[c1, 3] != 0) & (b[c0, 3] != 0) & (b[c1, 3] != 0)
-                        & (x != _BIG_LO) & (a[c1, 0] == x) & (b[c0, 0] == x) & (b[c1, 0] == x)
-                        & (a[c1, 1] == y) & (b[c0, 1] == y) & (b[c1, 1] == y)
-                        & (a[c1, 2] == z) & (b[c0, 2] == z) & (b[c1, 2] == z)
+                if j < pairs:  # the usual case first
+                    p = a[2 * j]
+                    q = a[2 * j + 1]
+                    r = b[2 * j]
+                    w = b[2 * j + 1]
+                    same, union = _usual_merge(
+                        p[0], p[1], p[2], p[3], q[0], q[1], q[2], q[3],
+                        r[0], r[1], r[2], r[3], w[0], w[1], w[2], w[3],
                     )  # fmt: skip
                     if same:
-                        out[0] = x
-                        out[1] = y
-                        out[2] = z
-                        out[3] = a[c0, 3] | a[c1, 3] | b[c0, 3] | b[c1, 3]
+                        out[0] = p[0]
+                        out[1] = p[1]
+                        out[2] = p[2]
+                        out[3] = union
                         continue
                 n = 0
                 for di in range(2):
@@ -904,23 +916,17 @@ def _band_kernels(kind: int):
                     box = _quad_box(rng, ranges, W - 1, 0, qv, max_disc)
                     for f in range(4):
                         quads[f, r, W - 1] = box[f]
-            # _merge's usual case first, without branches (vectorises): 2 x 2 valid quads,
-            # none big, their boxes from the same corner tile; the node's mask is the union
+            # _merge's usual case first (_usual_merge, vectorised): 2 x 2 valid quads, none
+            # big, their boxes from the same corner tile; the node's mask is the union
             pairs = nqu // 2 if rows == 2 else 0
             xa, ya, za, ma = quads[0, 0], quads[1, 0], quads[2, 0], quads[3, 0]
             xb, yb, zb, mb = quads[0, 1], quads[1, 1], quads[2, 1], quads[3, 1]
             for bu in range(pairs):
                 c0 = 2 * bu
                 c1 = c0 + 1
-                x = xa[c0]
-                y = ya[c0]
-                z = za[c0]
-                union[bu] = ma[c0] | ma[c1] | mb[c0] | mb[c1]
-                same[bu] = (
-                    (ma[c0] != 0) & (ma[c1] != 0) & (mb[c0] != 0) & (mb[c1] != 0) & (x != _BIG_LO)
-                    & (xa[c1] == x) & (xb[c0] == x) & (xb[c1] == x)
-                    & (ya[c1] == y) & (yb[c0] == y) & (yb[c1] == y)
-                    & (za[c1] == z) & (zb[c0] == z) & (zb[c1] == z)
+                same[bu], union[bu] = _usual_merge(
+                    xa[c0], ya[c0], za[c0], ma[c0], xa[c1], ya[c1], za[c1], ma[c1],
+                    xb[c0], yb[c0], zb[c0], mb[c0], xb[c1], yb[c1], zb[c1], mb[c1],
                 )  # fmt: skip
             for bu in range(cols):
                 out = nodes[bv * cols + bu]
