@@ -227,8 +227,9 @@ def quad_bounds(kind, params, rng, eps0, eps1, falloff, max_disc, out, free, rea
         lower = np.empty(nqu, np.float32)
         upper = np.empty(nqu, np.float32)
         # per column of quads, the extremes over the block's rows (padded to whole blocks)
-        lo = np.full(cols * QUAD_BLOCK, np.inf, np.float32)
-        hi = np.full(cols * QUAD_BLOCK, -np.inf, np.float32)
+        padded = cols * QUAD_BLOCK if blocks else 0
+        lo = np.full(padded, np.inf, np.float32)
+        hi = np.full(padded, -np.inf, np.float32)
         for qv in range(bv * QUAD_BLOCK, min(nqv, (bv + 1) * QUAD_BLOCK)):
             a = rng[qv]
             b = rng[qv + 1]

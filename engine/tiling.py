@@ -456,13 +456,16 @@ def _emit(rng6, keys, count, seen):
 @njit(cache=True, inline="always")
 def _box_of(corners, box):
     """The box (x0, y0, z0, x1, y1, z1) of the 8 points ``corners``, into ``box``."""
+    _box_of_ends(_extremes(corners, 0), _extremes(corners, 4), box)
+
+
+@njit(cache=True, inline="always")
+def _box_of_ends(near, far, box):
+    """The box of two sets of points given by their :func:`_extremes`, into ``box`` (min
+    and max are exact: the same box as from all the points at once)."""
     for ax in range(3):
-        box[ax] = np.inf
-        box[3 + ax] = -np.inf
-    for k in range(8):
-        for ax in range(3):
-            box[ax] = min(box[ax], corners[k, ax])
-            box[3 + ax] = max(box[3 + ax], corners[k, ax])
+        box[ax] = min(near[ax], far[ax])
+        box[3 + ax] = max(near[3 + ax], far[3 + ax])
 
 
 def _overflow_masks() -> np.ndarray:
@@ -754,8 +757,7 @@ def _slab_tiles(
         length = max(length, math.sqrt(d2))
     n = min(max(int(math.ceil(length / (0.5 * T * h))), 1), _MAX_SLABS)
     last = (_BIG_LO, _BIG_LO, _BIG_LO, _BIG_LO, _BIG_LO, _BIG_LO)
-    # a slab's box from the extremes of its two ends, each end's computed once (the same
-    # box as that of its 8 corners: min and max are exact)
+    # a slab's box from the extremes of its two ends, each end's computed once
     near = _extremes(corners, 0)
     for s in range(1, n + 1):
         f = s / n
@@ -763,9 +765,7 @@ def _slab_tiles(
             for ax in range(3):
                 corners[4 + k, ax] = corners[8 + k, ax] + f * corners[12 + k, ax]
         far = _extremes(corners, 4)
-        for ax in range(3):
-            box[ax] = min(near[ax], far[ax])
-            box[3 + ax] = max(near[3 + ax], far[3 + ax])
+        _box_of_ends(near, far, box)
         span = _tile_range(box, h, T)
         if span != last:  # consecutive slabs often cover the same tiles
             count = _emit(span, keys, count, seen)
