@@ -43,8 +43,13 @@ lint: install
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
+# mypy cannot see through the editable install's import hook (the installed names are
+# rangefuse.engine, ...): it reads the packages through a tree of links under build/.
+TYPES_TREE := build/typecheck/rangefuse
 types: install
-	$(BIN)/mypy engine storage service
+	@mkdir -p $(TYPES_TREE)
+	@for p in engine storage service; do ln -sfn ../../../$$p $(TYPES_TREE)/$$p; done
+	MYPYPATH=build/typecheck $(BIN)/mypy -p rangefuse.engine -p rangefuse.storage -p rangefuse.service
 
 check: lint types test
 
@@ -73,4 +78,4 @@ bench-full: $(BENCH_STAMP)
 	$(BIN)/python benchmarks/vs_open3d.py
 
 clean:
-	rm -rf $(VENV) .numba_cache out .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) .numba_cache out build .pytest_cache .mypy_cache .ruff_cache

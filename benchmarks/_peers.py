@@ -8,8 +8,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-
-from engine import PinholeSensor, Scan
+from rangefuse.engine import PinholeSensor, Scan
 
 #: Open3D's truncation distance in voxels and its depth cut-off (metres).
 TRUNC_VOXELS = 4.0

@@ -20,8 +20,8 @@ import time
 
 
 def _child(cfg: dict) -> dict:
-    from engine import FusionParams, GridSpec, NoiseModel, Volume
-    from engine.synth import make_dataset
+    from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
+    from rangefuse.engine.synth import make_dataset
 
     data = make_dataset("room", views=cfg["frames"])
     scans = data.scans
@@ -67,8 +67,7 @@ def main() -> None:
             for t in (8, 16, 32)
         ]
     import numba
-
-    from engine._threads import threading_layer
+    from rangefuse.engine._threads import threading_layer
 
     # the children run with the same environment, hence the same layer
     print(f"{numba.get_num_threads()} numba threads, '{threading_layer()}' threading layer")

@@ -24,9 +24,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _peers import Open3DTSDF, depth_images, open3d_available
-
-from engine import FusionParams, GridSpec, NoiseModel, Volume
-from engine.synth import make_dataset
+from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
+from rangefuse.engine.synth import make_dataset
 
 
 def _best(fn: Callable[[], int], repeat: int = 3) -> tuple[int, float]:

@@ -24,10 +24,10 @@ from pathlib import Path
 
 
 def _child(cfg: dict) -> dict:
-    from engine import FusionParams, GridSpec, NoiseModel
-    from engine.synth import make_dataset
-    from service.runners import ProcessRunner
-    from storage.scene import InProcess, open_store
+    from rangefuse.engine import FusionParams, GridSpec, NoiseModel
+    from rangefuse.engine.synth import make_dataset
+    from rangefuse.service.runners import ProcessRunner
+    from rangefuse.storage.scene import InProcess, open_store
 
     h = cfg["voxel"]
     data = make_dataset("street", length_m=cfg["length"])

@@ -45,9 +45,9 @@ def main() -> None:
     args = parser.parse_args()
     clients, per = (2, 3) if args.quick else (args.clients, args.scans)
     sys.path.insert(0, str(ROOT))
-    from engine import Volume
-    from engine.synth import make_dataset
-    from storage import Store
+    from rangefuse.engine import Volume
+    from rangefuse.engine.synth import make_dataset
+    from rangefuse.storage import Store
 
     data = make_dataset("object", views=per)
     payloads = []
@@ -60,7 +60,7 @@ def main() -> None:
         port = _port()
         env = {**os.environ, "PYTHONUNBUFFERED": "1", "RANGEFUSE_POLL_S": "0.05"}
         proc = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", "--data-dir", f"{tmp}/data",
+            [sys.executable, "-m", "rangefuse.service.cli", "serve", "--data-dir", f"{tmp}/data",
              "--port", str(port)],
             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )  # fmt: skip

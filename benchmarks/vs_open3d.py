@@ -33,9 +33,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
-
-from engine import FusionParams, GridSpec, NoiseModel, PinholeSensor, Scan, Volume
-from engine.synth import make_dataset
+from rangefuse.engine import FusionParams, GridSpec, NoiseModel, PinholeSensor, Scan, Volume
+from rangefuse.engine.synth import make_dataset
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _peers import (
@@ -183,8 +182,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         import_open3d()  # exits with the install hint
     # numba picks its threading layer before Open3D loads its own TBB (else numba warns).
     import numba
-
-    from engine._threads import threading_layer
+    from rangefuse.engine._threads import threading_layer
 
     layer = threading_layer()
     print(

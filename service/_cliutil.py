@@ -9,10 +9,10 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from engine import DenseGrid
-from engine.meshing import Mesh
-from storage import write_grid
-from storage.meshes import MeshFormatError, mesh_format, write_mesh
+from rangefuse.engine import DenseGrid
+from rangefuse.engine.meshing import Mesh
+from rangefuse.storage import write_grid
+from rangefuse.storage.meshes import MeshFormatError, mesh_format, write_mesh
 
 
 class CommandError(Exception):

@@ -16,8 +16,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from storage import write_dataset
-from storage.importers import KINDS, ImportOptions, ImportResult, read_source
+from rangefuse.storage import write_dataset
+from rangefuse.storage.importers import KINDS, ImportOptions, ImportResult, read_source
 
 from ._cliutil import CommandError, check_outputs, finite_float, positive_float, positive_int
 

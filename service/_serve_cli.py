@@ -6,7 +6,7 @@ import argparse
 import os
 from pathlib import Path
 
-from storage import Store
+from rangefuse.storage import Store
 
 from ._cliutil import CommandError, positive_int
 

@@ -14,11 +14,11 @@ import time
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
-from engine import FusionParams, GridSpec, Scan
-from engine.meshing import Mesh
-from storage import open_dataset
-from storage.dataset import read_scan_file
-from storage.scene import CACHE_MB, InProcess, Runner, Scene, open_store
+from rangefuse.engine import FusionParams, GridSpec, Scan
+from rangefuse.engine.meshing import Mesh
+from rangefuse.storage import open_dataset
+from rangefuse.storage.dataset import read_scan_file
+from rangefuse.storage.scene import CACHE_MB, InProcess, Runner, Scene, open_store
 
 from ._cliutil import (
     CommandError,
@@ -129,7 +129,7 @@ def _sensor_file_for(scan_path: Path, explicit: Path | None) -> Path | None:
 
 
 def _cmd_add(args: argparse.Namespace) -> int:
-    from engine import sensor_from_dict
+    from rangefuse.engine import sensor_from_dict
 
     scans = []
     for path in args.scans:

@@ -23,17 +23,16 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
+from rangefuse.engine import FusionParams, GridSpec, InvalidInputError, NoiseModel
+from rangefuse.engine.certainty import decode_logodds
+from rangefuse.engine.defaults import EPS_PER_VOXEL, RHO, TILE_SIZE_VOX
+from rangefuse.engine.grid import unpack_keys
+from rangefuse.engine.meshing import Mesh
+from rangefuse.storage import Store, StoreError
+from rangefuse.storage.importers import encode_png
+from rangefuse.storage.meshes import mesh_bytes
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
-
-from engine import FusionParams, GridSpec, InvalidInputError, NoiseModel
-from engine.certainty import decode_logodds
-from engine.defaults import EPS_PER_VOXEL, RHO, TILE_SIZE_VOX
-from engine.grid import unpack_keys
-from engine.meshing import Mesh
-from storage import Store, StoreError
-from storage.importers import encode_png
-from storage.meshes import mesh_bytes
 
 from .jobs import Dispatcher, new_id
 from .settings import Settings
@@ -513,7 +512,7 @@ def create_app(settings: Settings) -> FastAPI:
 def _slice_png(store: Store, scene_id: str, grid: GridSpec, axis: int, at: float) -> bytes:
     """The fused certainty on a plane: free blue, occupied red (darker = more certain),
     unknown grey; the image covers the tiles that cross the plane."""
-    from storage.zarr_tiles import ZarrTiles
+    from rangefuse.storage.zarr_tiles import ZarrTiles
 
     T = grid.tile_size_vox
     h = grid.voxel_size_m

@@ -17,8 +17,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
-
-from engine import (
+from rangefuse.engine import (
     FILTERS,
     MODES,
     NO_RETURN,
@@ -29,10 +28,10 @@ from engine import (
     Scan,
     Volume,
 )
-from engine.certainty import SHAPES
-from engine.defaults import EPS_PER_VOXEL, RHO, TILE_SIZE_VOX
-from storage import DatasetError, open_dataset, write_dataset
-from storage.scene import StoreError
+from rangefuse.engine.certainty import SHAPES
+from rangefuse.engine.defaults import EPS_PER_VOXEL, RHO, TILE_SIZE_VOX
+from rangefuse.storage import DatasetError, open_dataset, write_dataset
+from rangefuse.storage.scene import StoreError
 
 from ._cliutil import (
     CommandError,
@@ -56,7 +55,7 @@ __all__ = ["main"]
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    from engine.synth import make_dataset, parse_noise
+    from rangefuse.engine.synth import make_dataset, parse_noise
 
     noise = parse_noise(args.noise)
     if args.out.exists() and not args.out.is_dir():

@@ -20,9 +20,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from storage import Store
-from storage.catalog import JobRow
+from rangefuse.storage import Store
+from rangefuse.storage.catalog import JobRow
 
 from .runners import spawn_pool
 
@@ -43,7 +42,7 @@ def _mesh_path(store: Store, scene_id: str, job_id: str) -> Path:
 
 def run_job(data_dir: str, job_id: str, cache_mb: float) -> dict[str, Any]:
     """Run one job to completion (in a worker process); returns its result."""
-    from storage._files import atomic_write
+    from rangefuse.storage._files import atomic_write
 
     with Store.open(data_dir) as store:
         catalog = store.catalog

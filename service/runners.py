@@ -13,7 +13,7 @@ import os
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 
-from storage.scene import TileUnit, UnitResult
+from rangefuse.storage.scene import TileUnit, UnitResult
 
 __all__ = ["ProcessRunner", "spawn_pool"]
 

@@ -19,12 +19,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from engine import InvalidInputError, NoiseModel, Scan, sensor_from_dict
-from storage import DatasetError
-from storage.dataset import read_scan_file
-from storage.importers import decode_png
-from storage.importers.errors import SourceError
+from rangefuse.engine import InvalidInputError, NoiseModel, Scan, sensor_from_dict
+from rangefuse.storage import DatasetError
+from rangefuse.storage.dataset import read_scan_file
+from rangefuse.storage.importers import decode_png
+from rangefuse.storage.importers.errors import SourceError
 
 __all__ = ["UploadError", "UploadedScan", "decode_scan"]
 

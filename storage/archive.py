@@ -27,9 +27,8 @@ from typing import Any
 import numpy as np
 import zarr
 import zarr.codecs
+from rangefuse.engine import InvalidInputError, NoiseModel, Scan, Sensor, sensor_from_dict
 from zarr.storage import LocalStore
-
-from engine import InvalidInputError, NoiseModel, Scan, Sensor, sensor_from_dict
 
 __all__ = ["SCANS_GROUP", "ArchiveError", "ScanArchive", "check_scan_id", "scan_checksum"]
 

@@ -18,8 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from engine import InvalidInputError, Scan, Sensor, sensor_from_dict
+from rangefuse.engine import InvalidInputError, Scan, Sensor, sensor_from_dict
 
 from ._files import atomic_write, atomic_write_text
 

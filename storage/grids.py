@@ -10,8 +10,7 @@ import os
 from pathlib import Path
 
 import numpy as np
-
-from engine import DenseGrid
+from rangefuse.engine import DenseGrid
 
 from ._files import atomic_write
 from .dataset import DatasetError, _read_npz

@@ -13,8 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-
-from engine.meshing import Mesh
+from rangefuse.engine.meshing import Mesh
 
 from ._files import atomic_write
 

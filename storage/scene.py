@@ -23,8 +23,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
-
-from engine import (
+from rangefuse.engine import (
     DenseGrid,
     FusionParams,
     GridSpec,
@@ -33,9 +32,9 @@ from engine import (
     ScanNotFoundError,
     prepare_scan,
 )
-from engine.fusion import integrate_seen
-from engine.grid import pack_keys, unique_keys, unpack_keys
-from engine.meshing import (
+from rangefuse.engine.fusion import integrate_seen
+from rangefuse.engine.grid import pack_keys, unique_keys, unpack_keys
+from rangefuse.engine.meshing import (
     HALO_TILES,
     Mesh,
     TileMeshes,
@@ -44,8 +43,8 @@ from engine.meshing import (
     stitch,
     tiles_to_mesh,
 )
-from engine.tiling import FREE, OUT, bounding_sphere, classify_tiles, tiles_touched
-from engine.volume import dense_logodds
+from rangefuse.engine.tiling import FREE, OUT, bounding_sphere, classify_tiles, tiles_touched
+from rangefuse.engine.volume import dense_logodds
 
 from .archive import ScanArchive
 from .catalog import Catalog, ScanRow

@@ -33,10 +33,9 @@ import numpy as np
 import zarr
 import zarr.codecs
 from numcodecs import Zstd
+from rangefuse.engine.grid import KEY_LIMIT, unique_keys
 from zarr.core.buffer import default_buffer_prototype
 from zarr.storage import LocalStore
-
-from engine.grid import KEY_LIMIT, unique_keys
 
 __all__ = ["TILES_ARRAY", "TileArrayError", "ZarrTiles"]
 

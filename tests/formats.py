@@ -13,10 +13,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from rangefuse.engine import PinholeSensor, Scan, SphericalSensor
+from rangefuse.engine.synth import AnalyticScene, SceneBuilder, render
+from rangefuse.storage.importers import write_png
 
-from engine import PinholeSensor, Scan, SphericalSensor
-from engine.synth import AnalyticScene, SceneBuilder, render
-from storage.importers import write_png
 from tests.scenes import look_at_cv, look_at_xfwd, pose
 
 #: A small pinhole depth camera (about 67 x 53 degrees, like a Kinect's), z-depth.

@@ -11,9 +11,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from rangefuse.engine import FusionParams, NoiseModel, Scan
 from scipy.special import erfc
-
-from engine import FusionParams, NoiseModel, Scan
 
 
 def project(sensor: dict, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

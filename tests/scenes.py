@@ -9,9 +9,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from engine import Scan, Sensor, sensor_from_dict
-from engine.synth import AnalyticScene, SceneBuilder, render
+from rangefuse.engine import Scan, Sensor, sensor_from_dict
+from rangefuse.engine.synth import AnalyticScene, SceneBuilder, render
 
 #: Region of interest of the small scene, world metres.
 BOUNDS = (-0.4, -0.4, -0.4, 0.4, 0.4, 0.4)

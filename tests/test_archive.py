@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
+from rangefuse.engine import NoiseModel, Scan
+from rangefuse.storage import archive as archive_module
+from rangefuse.storage.archive import ArchiveError, ScanArchive, check_scan_id, scan_checksum
 from zarr.storage import LocalStore
 
-from engine import NoiseModel, Scan
-from storage import archive as archive_module
-from storage.archive import ArchiveError, ScanArchive, check_scan_id, scan_checksum
 from tests import scenes
 
 

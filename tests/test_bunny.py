@@ -28,12 +28,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from rangefuse.engine import Scan
+from rangefuse.service.cli import main
+from rangefuse.storage import open_dataset
+from rangefuse.storage.importers import ImportOptions, read_source
+from rangefuse.storage.meshes import read_ply_inferred
 
-from engine import Scan
-from service.cli import main
-from storage import open_dataset
-from storage.importers import ImportOptions, read_source
-from storage.meshes import read_ply_inferred
 from tests.surface_distance import MeshIndex, on_boundary, sample_surface
 
 pytestmark = pytest.mark.real_data

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from rangefuse.engine import InvalidNoiseError, NoiseModel, decode_count, decode_logodds
+from rangefuse.engine.certainty import contribution, log, logit, pack, quantise
+from rangefuse.engine.defaults import LOGIT_SCALE
 
-from engine import InvalidNoiseError, NoiseModel, decode_count, decode_logodds
-from engine.certainty import contribution, log, logit, pack, quantise
-from engine.defaults import LOGIT_SCALE
 from tests import reference
 
 

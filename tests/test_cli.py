@@ -1,6 +1,6 @@
 """The ``rangefuse`` command line (service/cli.py): synth, fuse, options and error exits.
 
-A few cases run the installed console script (or ``python -m service.cli``) as a real
+A few cases run the installed console script (or ``python -m rangefuse.service.cli``) as a real
 subprocess; the rest call :func:`service.cli.main` in-process, which is faster. Every
 fused grid is compared bit for bit (NaN positions included) with the same scans fused
 in-process through :class:`engine.Volume` with the parameters the CLI documents.
@@ -19,13 +19,12 @@ from typing import Any, cast
 
 import numpy as np
 import pytest
-
-from engine import DenseGrid, FusionParams, GridSpec, NoiseModel, Scan, Volume
-from engine.grid import Bounds
-from engine.synth import SyntheticDataset, make_dataset, parse_noise
-from service._progress import ProgressBar
-from service.cli import main
-from storage import open_dataset, read_grid, write_dataset
+from rangefuse.engine import DenseGrid, FusionParams, GridSpec, NoiseModel, Scan, Volume
+from rangefuse.engine.grid import Bounds
+from rangefuse.engine.synth import SyntheticDataset, make_dataset, parse_noise
+from rangefuse.service._progress import ProgressBar
+from rangefuse.service.cli import main
+from rangefuse.storage import open_dataset, read_grid, write_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 RANGEFUSE = Path(sys.executable).parent / "rangefuse"
@@ -44,10 +43,11 @@ def run_main(argv: Sequence[Any], capsys: pytest.CaptureFixture[str]) -> tuple[i
 
 
 def run_subprocess(*argv: Any, module: bool = False) -> subprocess.CompletedProcess[str]:
-    """The installed ``rangefuse`` script, or ``python -m service.cli`` with ``module``."""
+    """The installed ``rangefuse`` script, or ``python -m rangefuse.service.cli`` with
+    ``module``."""
     env = dict(os.environ)
     env.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba_cache"))
-    head = [sys.executable, "-m", "service.cli"] if module else [str(RANGEFUSE)]
+    head = [sys.executable, "-m", "rangefuse.service.cli"] if module else [str(RANGEFUSE)]
     return subprocess.run(
         [*head, *map(str, argv)],
         capture_output=True,

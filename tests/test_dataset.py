@@ -19,8 +19,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-
-from engine import (
+from rangefuse.engine import (
     CylindricalSensor,
     DenseGrid,
     OrthographicSensor,
@@ -29,7 +28,7 @@ from engine import (
     Sensor,
     SphericalSensor,
 )
-from storage import (
+from rangefuse.storage import (
     DatasetError,
     open_dataset,
     read_grid,

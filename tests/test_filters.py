@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from rangefuse.engine import InvalidInputError, filter_range
 
-from engine import InvalidInputError, filter_range
 from tests import reference
 
 

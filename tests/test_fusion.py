@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from engine import (
+from rangefuse.engine import (
     FusionParams,
     GridSpec,
     InvalidGridError,
@@ -28,12 +27,13 @@ from engine import (
     prepare_scan,
     tiling,
 )
-from engine._sampling import QUAD_BLOCK
-from engine.defaults import COUNT_BITS, LOGIT_SCALE
-from engine.fusion import integrate_seen
-from engine.grid import KEY_LIMIT, unique_keys
-from engine.synth import make_dataset
-from engine.tiling import FREE, OUT, classify_tiles, tiles_touched
+from rangefuse.engine._sampling import QUAD_BLOCK
+from rangefuse.engine.defaults import COUNT_BITS, LOGIT_SCALE
+from rangefuse.engine.fusion import integrate_seen
+from rangefuse.engine.grid import KEY_LIMIT, unique_keys
+from rangefuse.engine.synth import make_dataset
+from rangefuse.engine.tiling import FREE, OUT, classify_tiles, tiles_touched
+
 from tests import reference, scenes
 
 H = 0.02  # voxel size of the small scene
@@ -387,7 +387,7 @@ def test_volume_errors() -> None:
 @pytest.mark.parametrize("filter_name", ["none", "median3", "mean5"])
 def test_bounding_sphere_holds_everything_the_scan_informs(name, filter_name):
     """The kernel-free sphere the service records is never tighter than the scan's reach."""
-    from engine.tiling import bounding_sphere, reach_radius
+    from rangefuse.engine.tiling import bounding_sphere, reach_radius
 
     for no_return in ("free", "invalid"):
         params = _params(filter=filter_name, no_return=no_return)
@@ -399,8 +399,8 @@ def test_bounding_sphere_holds_everything_the_scan_informs(name, filter_name):
 
 
 _CACHE_PROBE = """
-from engine import FusionParams, GridSpec, NoiseModel, Volume
-from engine.synth import make_dataset
+from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
+from rangefuse.engine.synth import make_dataset
 params = FusionParams(NoiseModel(eps_m=0.05, rho=0.05))
 for name, h in (("room", 0.04), ("street", 0.08)):
     data = make_dataset(name, views=1, length_m=4.0 if name == "street" else None)
@@ -511,8 +511,8 @@ def test_a_prepared_scan_builds_its_tile_statistics_with_its_first_bounds(sensor
 
 _LAYER_PROBE = """
 import warnings
-from engine import FusionParams, GridSpec, NoiseModel, Volume
-from engine.synth import make_dataset
+from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
+from rangefuse.engine.synth import make_dataset
 data = make_dataset("room", views=2)
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")

@@ -14,10 +14,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from engine import PinholeSensor, Scan
-from storage import open_dataset
-from storage.importers import (
+from rangefuse.engine import PinholeSensor, Scan
+from rangefuse.storage import open_dataset
+from rangefuse.storage.importers import (
     ImportOptions,
     PoseFixes,
     SourceError,
@@ -27,7 +26,8 @@ from storage.importers import (
     snap_rotation,
     write_png,
 )
-from storage.importers.stanford import linescan_image
+from rangefuse.storage.importers.stanford import linescan_image
+
 from tests import formats
 from tests.test_cli import assert_same_grid, run_main
 
@@ -326,7 +326,7 @@ def test_beam_estimate_with_jitter_and_strays() -> None:
 
 def _back_projection_rms(scan: Scan, points_W: np.ndarray) -> float:
     """RMS difference between each true sample's radial range and the image's range there."""
-    from storage.importers.checks import _bilinear
+    from rangefuse.storage.importers.checks import _bilinear
 
     T = np.linalg.inv(scan.T_W_S)
     p_S = points_W @ T[:3, :3].T + T[:3, 3]
@@ -456,7 +456,7 @@ def test_cli_import_prints_warnings_and_fails_cleanly(
 def test_cli_fuse_format_equals_fusing_the_import(
     tmp_path: Path, seven_scenes: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from storage import read_grid
+    from rangefuse.storage import read_grid
 
     code, _, err = run_main(["import", "7scenes", seven_scenes, tmp_path / "ds"], capsys)
     assert code == 0, err

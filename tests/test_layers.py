@@ -26,15 +26,46 @@ FORBIDDEN = {
 }
 
 
-def _imports(path: Path) -> set[str]:
+#: The installed names of the three packages (pyproject.toml: ``package-dir``).
+PACKAGES = ("engine", "storage", "service")
+
+
+def _top(module: str) -> str:
+    """The top-level name of an import: ``rangefuse.engine.grid`` -> ``engine``, ``numpy.ma``
+    -> ``numpy``."""
+    parts = module.split(".")
+    return parts[1] if parts[0] == "rangefuse" and len(parts) > 1 else parts[0]
+
+
+def _absolute_imports(path: Path) -> list[str]:
     tree = ast.parse(path.read_text(), filename=str(path))
-    names: set[str] = set()
+    names: list[str] = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            names.update(alias.name.split(".")[0] for alias in node.names)
+            names.extend(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            names.add(node.module.split(".")[0])
+            names.append(node.module)
     return names
+
+
+def _imports(path: Path) -> set[str]:
+    return {_top(name) for name in _absolute_imports(path)}
+
+
+def _sources() -> list[Path]:
+    folders = [*PACKAGES, "tests", "benchmarks"]
+    return [p for folder in folders for p in (ROOT / folder).rglob("*.py")]
+
+
+def test_packages_are_imported_by_their_installed_names() -> None:
+    """``rangefuse.engine``, never a bare ``engine`` that only resolves from the checkout."""
+    bare = {
+        str(path.relative_to(ROOT)): sorted(
+            n for n in _absolute_imports(path) if n.split(".")[0] in PACKAGES
+        )
+        for path in _sources()
+    }
+    assert {k: v for k, v in bare.items() if v} == {}
 
 
 @pytest.mark.parametrize("package", sorted(FORBIDDEN))
@@ -48,9 +79,9 @@ def test_source_imports_go_one_way(package: str) -> None:
 
 def test_importing_engine_loads_none_of_the_heavy_layers() -> None:
     code = (
-        "import sys, engine, engine.synth;"
+        "import sys, rangefuse.engine, rangefuse.engine.synth;"
         "bad = sorted(m for m in ('zarr', 'trimesh', 'fastapi', 'pydantic', 'storage', 'service')"
-        " if m in sys.modules);"
+        " if m in sys.modules or 'rangefuse.' + m in sys.modules);"
         "print(','.join(bad))"
     )
     out = subprocess.run(

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from engine import MemoryTileStore
+from rangefuse.engine import MemoryTileStore
 
 T = 4
 

@@ -10,17 +10,17 @@ import pytest
 import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from rangefuse.engine import FusionParams, GridSpec, MemoryTileStore, NoiseModel, Volume
+from rangefuse.engine._mc_tables import TRI_COUNT, TRI_TABLE
+from rangefuse.engine.defaults import COUNT_BITS
+from rangefuse.engine.meshing import Mesh, extract_mesh, mesh_tiles, stitch
+from rangefuse.engine.synth import make_dataset
+from rangefuse.service.cli import main
+from rangefuse.storage.meshes import MeshFormatError, read_ply_inferred, write_mesh
 from scipy.ndimage import gaussian_filter
 from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
-from engine import FusionParams, GridSpec, MemoryTileStore, NoiseModel, Volume
-from engine._mc_tables import TRI_COUNT, TRI_TABLE
-from engine.defaults import COUNT_BITS
-from engine.meshing import Mesh, extract_mesh, mesh_tiles, stitch
-from engine.synth import make_dataset
-from service.cli import main
-from storage.meshes import MeshFormatError, read_ply_inferred, write_mesh
 from tests import scenes
 
 # --------------------------------------------------------------------------------------------

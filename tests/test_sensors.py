@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from engine import (
+from rangefuse.engine import (
     InvalidSensorError,
     OrthographicSensor,
     PinholeSensor,
@@ -17,6 +16,7 @@ from engine import (
     SphericalSensor,
     sensor_from_dict,
 )
+
 from tests import reference
 
 PINHOLE = dict(

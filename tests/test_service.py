@@ -16,11 +16,10 @@ import httpx
 import numpy as np
 import pytest
 import trimesh
-
-from engine.synth import make_dataset
-from service.cli import main
-from storage import write_dataset
-from storage.importers import encode_png
+from rangefuse.engine.synth import make_dataset
+from rangefuse.service.cli import main
+from rangefuse.storage import write_dataset
+from rangefuse.storage.importers import encode_png
 
 ROOT = Path(__file__).resolve().parents[1]
 VOXEL = 0.04
@@ -49,7 +48,14 @@ class Server:
             "RANGEFUSE_POLL_S": "0.05",
             "PYTHONUNBUFFERED": "1",
         }
-        cmd = [sys.executable, "-m", "service.cli", "serve", "--data-dir", str(self.data_dir)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "rangefuse.service.cli",
+            "serve",
+            "--data-dir",
+            str(self.data_dir),
+        ]
         self.proc = subprocess.Popen(
             [*cmd, "--port", str(self.port)],
             cwd=ROOT,
@@ -434,7 +440,7 @@ def test_tokens_and_tenants(server, client, object_data):
     assert bad.status_code == 401 and "invalid token" in bad.json()["detail"]
     # a second tenant (the token command writes to the same store)
     out = subprocess.run(
-        [sys.executable, "-m", "service.cli", "token", "create", "--tenant", "other",
+        [sys.executable, "-m", "rangefuse.service.cli", "token", "create", "--tenant", "other",
          "--data-dir", str(server.data_dir)],
         cwd=ROOT, capture_output=True, text=True, check=True,
     )  # fmt: skip
@@ -450,8 +456,8 @@ def test_tokens_and_tenants(server, client, object_data):
 def test_concurrent_uploads_are_fused_exactly_once(server, client, object_data):
     import threading
 
-    from engine import Volume
-    from storage import Store
+    from rangefuse.engine import Volume
+    from rangefuse.storage import Store
 
     sid = client.post("/v1/scenes", json=_scene_body(object_data)).json()["id"]
     statuses: list[int] = []

@@ -12,13 +12,12 @@ import time
 
 import numpy as np
 import pytest
-
-from engine import FusionParams, GridSpec, NoiseModel, Volume
-from engine.grid import pack_keys, unpack_keys
-from engine.synth import make_dataset
-from service.cli import main
-from storage import read_grid, write_dataset
-from storage.scene import (
+from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
+from rangefuse.engine.grid import pack_keys, unpack_keys
+from rangefuse.engine.synth import make_dataset
+from rangefuse.service.cli import main
+from rangefuse.storage import read_grid, write_dataset
+from rangefuse.storage.scene import (
     DEFAULT_SCENE,
     SceneConflictError,
     Store,
@@ -77,8 +76,8 @@ def test_store_equals_memory_and_survives_reopening(tmp_path, room, mode):
 
 
 def test_tile_cache_evicts_dirty_tiles_and_reads_them_back(tmp_path):
-    from storage.scene import TileCache
-    from storage.zarr_tiles import ZarrTiles
+    from rangefuse.storage.scene import TileCache
+    from rangefuse.storage.zarr_tiles import ZarrTiles
 
     tiles = ZarrTiles.create(tmp_path / "g.zarr", 4)
     cache = TileCache(tiles, 4, budget_bytes=16 * 4**3 * 8)  # 16 tiles
@@ -113,7 +112,7 @@ def test_adding_later_equals_all_at_once(tmp_path, room):
 
 
 def test_worker_processes_give_the_same_bits(tmp_path, room):
-    from service.runners import ProcessRunner
+    from rangefuse.service.runners import ProcessRunner
 
     grid = _grid()
     expected = _memory(room.scans, grid).to_dense()
@@ -287,7 +286,15 @@ def test_kill_at_random_instants_then_resume(tmp_path):
     data = make_dataset("room", views=10)
     write_dataset(data_dir, data.sensor, data.scans)
     expected = _memory(data.scans, GridSpec(H, 8, "mapping")).to_dense()
-    cmd = [sys.executable, "-m", "service.cli", "fuse", str(data_dir), "--voxel-size", str(H)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "rangefuse.service.cli",
+        "fuse",
+        str(data_dir),
+        "--voxel-size",
+        str(H),
+    ]
     cmd += ["--tile-size", "8", "--quiet", "--cache-mb", "1"]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     # kill instants are fractions of an uninterrupted run, so that they land mid-run however

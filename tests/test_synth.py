@@ -10,15 +10,14 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from engine import (
+from rangefuse.engine import (
     InvalidInputError,
     OrthographicSensor,
     PinholeSensor,
     Scan,
     SphericalSensor,
 )
-from engine.synth import (
+from rangefuse.engine.synth import (
     SCENES,
     AnalyticScene,
     NoiseSpec,

@@ -25,7 +25,7 @@ def _dom(url: str) -> str:
 
 @pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium (.ci/run installs it)")
 def test_page_lists_scenes_and_jobs_and_shows_the_mesh(tmp_path):
-    from engine.synth import make_dataset
+    from rangefuse.engine.synth import make_dataset
 
     data = make_dataset("object", views=3)
     srv = Server(tmp_path / "data").start()

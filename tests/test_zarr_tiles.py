@@ -12,10 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
+from rangefuse.engine.grid import KEY_LIMIT
+from rangefuse.storage.zarr_tiles import TileArrayError, ZarrTiles
 from zarr.storage import LocalStore
-
-from engine.grid import KEY_LIMIT
-from storage.zarr_tiles import TileArrayError, ZarrTiles
 
 OFFSET = KEY_LIMIT
 
@@ -227,7 +226,7 @@ _KILLED_WRITER = textwrap.dedent(
     """
     import pathlib, sys, time
     import numpy as np
-    from storage.zarr_tiles import ZarrTiles
+    from rangefuse.storage.zarr_tiles import ZarrTiles
 
     def stuck(self, target):  # killed between writing the temporary file and the rename
         print("written", flush=True)

@@ -19,7 +19,7 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
-from engine import InvalidInputError
+from rangefuse.engine import InvalidInputError
 
 from ._png import decode_png, encode_png, read_png, write_png
 from .checks import run_checks

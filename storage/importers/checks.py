@@ -22,8 +22,7 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-
-from engine import PinholeSensor, Scan
+from rangefuse.engine import PinholeSensor, Scan
 
 __all__ = [
     "PLAUSIBLE_RANGE_M",

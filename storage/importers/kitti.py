@@ -21,8 +21,7 @@ import math
 from pathlib import Path
 
 import numpy as np
-
-from engine import Scan, SphericalSensor
+from rangefuse.engine import Scan, SphericalSensor
 
 from .errors import SourceError
 from .options import ImportOptions, ImportResult, file_pose

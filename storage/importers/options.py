@@ -9,8 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from engine import InvalidInputError, Scan, Sensor
+from rangefuse.engine import InvalidInputError, Scan, Sensor
 
 __all__ = [
     "STANFORD_AXIS_YZ_M",

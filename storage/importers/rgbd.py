@@ -21,8 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-
-from engine import PinholeSensor, Scan
+from rangefuse.engine import PinholeSensor, Scan
 
 from ._png import read_png
 from .errors import SourceError

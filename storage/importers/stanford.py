@@ -34,8 +34,7 @@ import math
 from pathlib import Path
 
 import numpy as np
-
-from engine import CylindricalSensor, Scan
+from rangefuse.engine import CylindricalSensor, Scan
 
 from ._ply import read_ply
 from .errors import SourceError
