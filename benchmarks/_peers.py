@@ -58,7 +58,7 @@ class Open3DTSDF:
     #: informed voxel, so the comparison uses 1).
     weight_threshold = 1.0
 
-    def __init__(self, voxel_size_m: float, sensor: PinholeSensor) -> None:
+    def __init__(self, voxel_size: float, sensor: PinholeSensor) -> None:
         o3d = import_open3d()
         self._o3d = o3d
         o3c = o3d.core
@@ -71,9 +71,9 @@ class Open3DTSDF:
             attr_names=("tsdf", "weight"),
             attr_dtypes=(o3c.float32, o3c.float32),
             attr_channels=((1), (1)),
-            voxel_size=voxel_size_m,
+            voxel_size=voxel_size,
             block_resolution=8,
-            block_count=max(10_000, int(BLOCKS_AT_1CM * (0.01 / voxel_size_m) ** 2)),
+            block_count=max(10_000, int(BLOCKS_AT_1CM * (0.01 / voxel_size) ** 2)),
             device=o3c.Device("CPU:0"),
         )
 

@@ -26,8 +26,8 @@ def _child(cfg: dict) -> dict:
     data = make_dataset("room", views=cfg["frames"])
     scans = data.scans
     h = cfg["voxel"]
-    params = FusionParams(NoiseModel(eps_m=2 * h, rho=0.05))
-    grid = GridSpec(h, cfg["tile"], cfg["mode"], data.bounds_m if cfg["mode"] == "closed" else None)
+    params = FusionParams(NoiseModel(eps=2 * h, rho=0.05))
+    grid = GridSpec(h, cfg["tile"], cfg["mode"], data.bounds if cfg["mode"] == "closed" else None)
     Volume(grid, params).add_many(scans[:1])  # compile or load the kernels
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     volume = Volume(grid, params)

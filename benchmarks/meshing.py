@@ -45,7 +45,7 @@ def _rss_mb() -> float:
 
 def run(frames: int, h: float, tile: int, skimage_limit: int) -> list[tuple[str, int, float]]:
     data = make_dataset("room", views=frames)
-    volume = Volume(GridSpec(h, tile, "mapping"), FusionParams(NoiseModel(eps_m=2 * h, rho=0.05)))
+    volume = Volume(GridSpec(h, tile, "mapping"), FusionParams(NoiseModel(eps=2 * h, rho=0.05)))
     volume.add_many(data.scans)
     rows = []
     rows.append(("rangefuse", *_best(lambda: volume.extract_mesh(refine=False).n_faces)))

@@ -32,7 +32,7 @@ def _child(cfg: dict) -> dict:
     h = cfg["voxel"]
     data = make_dataset("street", length_m=cfg["length"])
     grid = GridSpec(h, cfg["tile"], "mapping")
-    params = FusionParams(NoiseModel(eps_m=2 * h, rho=0.05))
+    params = FusionParams(NoiseModel(eps=2 * h, rho=0.05))
     runner = ProcessRunner(cfg["workers"]) if cfg["workers"] > 1 else InProcess()
     with tempfile.TemporaryDirectory(dir=cfg["tmp"]) as tmp:
         t0 = time.perf_counter()

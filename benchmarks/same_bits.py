@@ -58,7 +58,7 @@ def run_cases(work: Path) -> dict[str, dict[str, str]]:
     for scene, (synth_opts, voxel, fuse_opts) in CASES.items():
         data = work / scene
         _run("synth", scene, str(data), *synth_opts)
-        bounds = json.loads((data / "scene.json").read_text())["bounds_m"]
+        bounds = json.loads((data / "scene.json").read_text())["bounds"]
         first_scan = sorted((data / "scans").glob("*.npz"))[0]
         for mode in ("mapping", "closed"):
             h = voxel if mode == "mapping" else 2 * voxel

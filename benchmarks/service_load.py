@@ -82,7 +82,7 @@ def main() -> None:
                 except httpx.HTTPError:
                     time.sleep(0.2)
             body = {"name": "load", "voxel_size": args.voxel, "mode": "closed",
-                    "bounds": list(data.bounds_m)}  # fmt: skip
+                    "bounds": list(data.bounds)}  # fmt: skip
             sid = httpx.post(f"{url}/v1/scenes", json=body, headers=headers).json()["id"]
             latencies: list[float] = []
             statuses: list[int] = []

@@ -79,7 +79,7 @@ class PeakRSS:
 def run_rangefuse(
     scans: Sequence[tuple[str, Scan]], voxel_m: float, tile_vox: int
 ) -> dict[str, float]:
-    params = FusionParams(NoiseModel(eps_m=2 * voxel_m, rho=0.05))
+    params = FusionParams(NoiseModel(eps=2 * voxel_m, rho=0.05))
     grid = GridSpec(voxel_m, tile_vox, "mapping")
     Volume(grid, params).add_many(list(scans[:1]))  # compile or load the kernels
     gc.collect()

@@ -31,6 +31,7 @@ from numba import njit
 
 from .defaults import COUNT_BITS, LOGIT_SCALE
 from .errors import InvalidNoiseError
+from .params import current_names
 
 __all__ = [
     "COUNT_MASK",
@@ -54,23 +55,23 @@ class NoiseModel:
 
     Parameters
     ----------
-    eps_m : float
+    eps : float
         Noise half-width at zero range, metres (``eps0``, > 0).
     eps_per_m : float
         Growth of the half-width with range (``eps1``, >= 0, < 1): ``eps = eps0 + eps1 * r``.
     rho : float
         Outlier probability, ``0 < rho < 1/2``.
-    falloff_m : float or None
+    falloff : float or None
         Distance behind the noise band over which certainty returns to 1/2; ``None`` means
         ``eps`` at that range (the paper's choice).
     shape : {"linear", "erf"}
         Piecewise-linear ramp (the paper's default) or a Gaussian (erf) ramp.
     """
 
-    eps_m: float
+    eps: float
     eps_per_m: float = 0.0
     rho: float = 0.05
-    falloff_m: float | None = None
+    falloff: float | None = None
     shape: str = "linear"
 
     def __post_init__(self) -> None:
@@ -85,7 +86,7 @@ class NoiseModel:
                 raise InvalidNoiseError(name, f"must be finite, got {value!r}")
             return out
 
-        eps = number("eps", self.eps_m)
+        eps = number("eps", self.eps)
         if eps <= 0.0:
             raise InvalidNoiseError("eps", f"noise half-width must be > 0 metres, got {eps}")
         eps1 = number("eps_per_m", self.eps_per_m)
@@ -94,7 +95,7 @@ class NoiseModel:
         rho = number("rho", self.rho)
         if not 0.0 < rho < 0.5:
             raise InvalidNoiseError("rho", f"outlier probability must be in (0, 1/2), got {rho}")
-        falloff = self.falloff_m
+        falloff = self.falloff
         if falloff is not None:
             falloff = number("falloff", falloff)
             if falloff <= 0.0:
@@ -103,10 +104,10 @@ class NoiseModel:
             raise InvalidNoiseError(
                 "shape", f"must be one of {', '.join(SHAPES)}, got {self.shape!r}"
             )
-        object.__setattr__(self, "eps_m", eps)
+        object.__setattr__(self, "eps", eps)
         object.__setattr__(self, "eps_per_m", eps1)
         object.__setattr__(self, "rho", rho)
-        object.__setattr__(self, "falloff_m", falloff)
+        object.__setattr__(self, "falloff", falloff)
 
     @property
     def shape_code(self) -> int:
@@ -114,9 +115,9 @@ class NoiseModel:
 
     def kernel_args(self) -> tuple[float, float, float, float, int, int]:
         """``(eps0, eps1, rho, falloff or -1, shape code, q_rho)`` as kernels take them."""
-        falloff = -1.0 if self.falloff_m is None else self.falloff_m
+        falloff = -1.0 if self.falloff is None else self.falloff
         return (
-            self.eps_m,
+            self.eps,
             self.eps_per_m,
             self.rho,
             falloff,
@@ -140,11 +141,12 @@ class NoiseModel:
 
     @staticmethod
     def from_dict(data: dict[str, Any]) -> NoiseModel:
-        known = {"eps_m", "eps_per_m", "rho", "falloff_m", "shape"}
+        data = current_names(data)
+        known = {"eps", "eps_per_m", "rho", "falloff", "shape"}
         unknown = sorted(set(data) - known)
         if unknown:
             raise InvalidNoiseError(unknown[0], f"unknown noise parameter (known: {sorted(known)})")
-        if "eps_m" not in data:
+        if "eps" not in data:
             raise InvalidNoiseError("eps", "missing")
         return NoiseModel(**data)
 

@@ -232,8 +232,8 @@ def integrate_seen(
             bounds = scan.quad_bounds(scratch)
         kernel(
             keys, data, np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(free),
-            np.int64(sign), grid.tile_size_vox, grid.voxel_size_m, scan.M, scan.c, scan.params,
-            scan.table, scan.range_m, bounds, scan.eps0, scan.eps1, scan.rho,
+            np.int64(sign), grid.tile_size, grid.voxel_size, scan.M, scan.c, scan.params,
+            scan.table, scan.range_m, bounds, scan.eps, scan.eps_per_m, scan.rho,
             scan.falloff, scan.q_rho, informed,
         )  # fmt: skip
     return informed
@@ -273,8 +273,8 @@ class Volume:
     def __init__(self, grid: GridSpec, params: FusionParams, store: TileStore | None = None):
         self.grid = grid
         self.params = params
-        self.store: TileStore = store if store is not None else MemoryTileStore(grid.tile_size_vox)
-        if self.store.tile_size != grid.tile_size_vox:
+        self.store: TileStore = store if store is not None else MemoryTileStore(grid.tile_size)
+        if self.store.tile_size != grid.tile_size:
             raise InvalidInputError("tile_size", "store and grid disagree on the tile size")
         self._scans: dict[str, Scan] = {}
         self._prepared: dict[str, PreparedScan] = {}
@@ -348,7 +348,7 @@ class Volume:
         keys = unique_keys(np.concatenate([existing, created]))
         is_new = _isin(keys, created)
         # pass 2: integration; new scans into every tile in view, old scans into new tiles
-        T = grid.tile_size_vox
+        T = grid.tile_size
         data = zeros((len(keys), T, T, T), np.int64)  # ordinary pages: see engine._memory
         loaded = np.zeros(len(keys), np.bool_)
         changed = np.zeros(len(keys), np.bool_)
@@ -451,13 +451,11 @@ class Volume:
     def tile_keys(self) -> np.ndarray:
         return self.store.keys()
 
-    def extract_mesh(self, *, refine: bool = True, bounds_m: Sequence[float] | None = None) -> Mesh:
+    def extract_mesh(self, *, refine: bool = True, bounds: Sequence[float] | None = None) -> Mesh:
         """The surface of the volume as one mesh (see :func:`engine.meshing.mesh_tiles`)."""
         scans = [self._prepare(scan_id) for scan_id in self._scans]
-        return extract_mesh(
-            self.store, self.grid, self.params, scans, refine=refine, bounds_m=bounds_m
-        )
+        return extract_mesh(self.store, self.grid, self.params, scans, refine=refine, bounds=bounds)
 
-    def to_dense(self, bounds_m: Sequence[float] | None = None) -> DenseGrid:
+    def to_dense(self, bounds: Sequence[float] | None = None) -> DenseGrid:
         """The fused log-odds as a dense grid (see :func:`engine.volume.dense_logodds`)."""
-        return dense_logodds(self.store, self.grid, bounds_m)
+        return dense_logodds(self.store, self.grid, bounds)

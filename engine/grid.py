@@ -18,6 +18,7 @@ from numba import njit
 
 from .defaults import TILE_SIZE_VOX
 from .errors import InvalidGridError
+from .params import current_names
 
 __all__ = ["MODES", "Bounds", "GridSpec", "pack_keys", "unique_keys", "unpack_keys"]
 
@@ -37,46 +38,46 @@ class GridSpec:
 
     Parameters
     ----------
-    voxel_size_m : float
+    voxel_size : float
         Edge of a voxel, metres.
-    tile_size_vox : int
+    tile_size : int
         Voxels along each edge of a cubic tile.
     mode : {"mapping", "closed"}
         ``"mapping"`` allocates tiles around observed surfaces; ``"closed"`` allocates every
-        tile of the region of interest that a line of sight crosses (needs ``bounds_m``).
-    bounds_m : (x0, y0, z0, x1, y1, z1) or None
+        tile of the region of interest that a line of sight crosses (needs ``bounds``).
+    bounds : (x0, y0, z0, x1, y1, z1) or None
         Region of interest, world metres.
     """
 
-    voxel_size_m: float
-    tile_size_vox: int = TILE_SIZE_VOX
+    voxel_size: float
+    tile_size: int = TILE_SIZE_VOX
     mode: str = "mapping"
-    bounds_m: Bounds | None = None
+    bounds: Bounds | None = None
 
     def __post_init__(self) -> None:
         try:
-            h = float(self.voxel_size_m)
+            h = float(self.voxel_size)
         except (TypeError, ValueError):
             raise InvalidGridError(
-                "voxel_size", f"must be a number, got {self.voxel_size_m!r}"
+                "voxel_size", f"must be a number, got {self.voxel_size!r}"
             ) from None
         if not (math.isfinite(h) and h > 0.0):
             raise InvalidGridError("voxel_size", f"must be a positive number of metres, got {h}")
         if h > 100.0:
             raise InvalidGridError("voxel_size", f"{h} m is not a sensible voxel size")
-        object.__setattr__(self, "voxel_size_m", h)
-        t = self.tile_size_vox
+        object.__setattr__(self, "voxel_size", h)
+        t = self.tile_size
         if isinstance(t, bool) or not isinstance(t, (int, np.integer)):
             raise InvalidGridError("tile_size", f"must be an integer, got {t!r}")
         if not _MIN_TILE_VOX <= t <= _MAX_TILE_VOX:
             raise InvalidGridError(
                 "tile_size", f"must be between {_MIN_TILE_VOX} and {_MAX_TILE_VOX} voxels, got {t}"
             )
-        object.__setattr__(self, "tile_size_vox", int(t))
+        object.__setattr__(self, "tile_size", int(t))
         if self.mode not in MODES:
             raise InvalidGridError("mode", f"must be one of {', '.join(MODES)}, got {self.mode!r}")
-        if self.bounds_m is not None:
-            b = self.bounds_m
+        if self.bounds is not None:
+            b = self.bounds
             try:
                 values = tuple(float(x) for x in b)
             except (TypeError, ValueError):
@@ -91,7 +92,7 @@ class GridSpec:
                         f"{name}0 must be less than {name}1, got {values[axis]} and "
                         f"{values[axis + 3]}",
                     )
-            object.__setattr__(self, "bounds_m", values)
+            object.__setattr__(self, "bounds", values)
             lo, hi = self.roi_voxels()
             if np.any(hi <= lo):
                 raise InvalidGridError(
@@ -102,14 +103,14 @@ class GridSpec:
 
     @property
     def tile_size_m(self) -> float:
-        return self.tile_size_vox * self.voxel_size_m
+        return self.tile_size * self.voxel_size
 
     def roi_voxels(self) -> tuple[np.ndarray, np.ndarray]:
         """Voxel index range ``[lo, hi)`` (int64 (3,) each) of the region of interest."""
-        if self.bounds_m is None:
+        if self.bounds is None:
             raise InvalidGridError("bounds", "this grid has no region of interest")
-        b = np.asarray(self.bounds_m, np.float64)
-        h = self.voxel_size_m
+        b = np.asarray(self.bounds, np.float64)
+        h = self.voxel_size
         lo = np.ceil(b[:3] / h - 0.5).astype(np.int64)
         hi = np.floor(b[3:] / h - 0.5).astype(np.int64) + 1
         return lo, hi
@@ -117,25 +118,26 @@ class GridSpec:
     def roi_tiles(self) -> tuple[np.ndarray, np.ndarray]:
         """Tile index range ``[lo, hi)`` of the tiles that hold voxels of the region of interest."""
         lo, hi = self.roi_voxels()
-        t = self.tile_size_vox
+        t = self.tile_size
         return np.floor_divide(lo, t), np.floor_divide(hi - 1, t) + 1
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "voxel_size_m": self.voxel_size_m,
-            "tile_size_vox": self.tile_size_vox,
+            "voxel_size": self.voxel_size,
+            "tile_size": self.tile_size,
             "mode": self.mode,
-            "bounds_m": None if self.bounds_m is None else list(self.bounds_m),
+            "bounds": None if self.bounds is None else list(self.bounds),
         }
 
     @staticmethod
     def from_dict(data: dict[str, Any]) -> GridSpec:
-        bounds = data.get("bounds_m")
+        data = current_names(data)
+        bounds = data.get("bounds")
         return GridSpec(
-            voxel_size_m=data["voxel_size_m"],
-            tile_size_vox=data.get("tile_size_vox", TILE_SIZE_VOX),
+            voxel_size=data["voxel_size"],
+            tile_size=data.get("tile_size", TILE_SIZE_VOX),
             mode=data.get("mode", "mapping"),
-            bounds_m=None if bounds is None else tuple(bounds),
+            bounds=None if bounds is None else tuple(bounds),
         )
 
 

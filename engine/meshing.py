@@ -427,19 +427,19 @@ def _refine(
         _sample_kernel(scan.kind, scan.shape)(
             vkey,
             rows,
-            grid.voxel_size_m,
+            grid.voxel_size,
             n_samples,
             scan.M,
             scan.c,
             scan.params,
             scan.table,
             scan.range_m,
-            scan.eps0,
-            scan.eps1,
+            scan.eps,
+            scan.eps_per_m,
             scan.rho,
             scan.falloff,
             scan.q_rho,
-            scan.max_disc,
+            scan.max_discontinuity,
             acc,
         )
     return acc
@@ -454,11 +454,11 @@ def pack_value(q: int) -> int:
 # which tiles, and their data
 
 
-def mesh_region(grid: GridSpec, bounds_m: Sequence[float] | None) -> tuple[np.ndarray, np.ndarray]:
-    if bounds_m is not None:
-        box: Bounds = tuple(float(x) for x in bounds_m)  # type: ignore[assignment]
-        return GridSpec(grid.voxel_size_m, grid.tile_size_vox, "mapping", box).roi_voxels()
-    if grid.bounds_m is not None:
+def mesh_region(grid: GridSpec, bounds: Sequence[float] | None) -> tuple[np.ndarray, np.ndarray]:
+    if bounds is not None:
+        box: Bounds = tuple(float(x) for x in bounds)  # type: ignore[assignment]
+        return GridSpec(grid.voxel_size, grid.tile_size, "mapping", box).roi_voxels()
+    if grid.bounds is not None:
         return grid.roi_voxels()
     return np.full(3, -_FAR, np.int64), np.full(3, _FAR, np.int64)
 
@@ -472,7 +472,7 @@ def tiles_to_mesh(
     existing: np.ndarray, grid: GridSpec, lo: np.ndarray, hi: np.ndarray
 ) -> np.ndarray:
     """Tiles whose cubes may hold faces."""
-    T = grid.tile_size_vox
+    T = grid.tile_size
     # cubes with a corner in the region: lowest corner in [lo - 1, hi - 1]
     t_lo = np.floor_divide(lo - 1, T)
     t_hi = np.floor_divide(hi - 1, T)
@@ -526,7 +526,7 @@ def mesh_tiles(
     keys: np.ndarray | None = None,
     *,
     refine: bool = True,
-    bounds_m: Sequence[float] | None = None,
+    bounds: Sequence[float] | None = None,
     n_samples: int = REFINE_SAMPLES,
 ) -> TileMeshes:
     """Mesh tiles on their own (marching cubes with a one-voxel halo, edge refinement).
@@ -545,12 +545,12 @@ def mesh_tiles(
         Place vertices at the crossing of the certainty re-evaluated from the range maps
         at ``n_samples - 1`` points along each edge (METHOD.md §3) instead of linear
         interpolation of the two voxels' log-odds.
-    bounds_m : (x0, y0, z0, x1, y1, z1), optional
+    bounds : (x0, y0, z0, x1, y1, z1), optional
         Mesh only this box (default: the grid's region of interest, if any).
     """
-    T = grid.tile_size_vox
+    T = grid.tile_size
     closed = grid.mode == "closed"
-    lo, hi = mesh_region(grid, bounds_m)
+    lo, hi = mesh_region(grid, bounds)
     existing = store.keys()
     if keys is None:
         keys = tiles_to_mesh(existing, grid, lo, hi)
@@ -591,7 +591,7 @@ def mesh_tiles(
         acc = np.zeros((0, max(n_samples - 1, 1)), np.int64)
     t = np.empty(nv, np.float64)
     _crossings(vlo, vhi, vknown, acc, n_samples, t)
-    h = grid.voxel_size_m
+    h = grid.voxel_size
     vertices = (vkey[:, :3].astype(np.float64) + 0.5) * h
     vertices[np.arange(nv), vkey[:, 3]] += t * h
     return TileMeshes(
@@ -647,12 +647,10 @@ def extract_mesh(
     scans: Iterable[PreparedScan],
     *,
     refine: bool = True,
-    bounds_m: Sequence[float] | None = None,
+    bounds: Sequence[float] | None = None,
     n_samples: int = REFINE_SAMPLES,
 ) -> Mesh:
     """The surface ``L = 0`` of a fused volume as one stitched mesh (see :func:`mesh_tiles`)."""
     return stitch(
-        mesh_tiles(
-            store, grid, params, scans, refine=refine, bounds_m=bounds_m, n_samples=n_samples
-        )
+        mesh_tiles(store, grid, params, scans, refine=refine, bounds=bounds, n_samples=n_samples)
     )

@@ -23,6 +23,7 @@ from ._memory import Scratch
 from .certainty import NoiseModel
 from .errors import InvalidInputError, InvalidScanError
 from .filters import FILTERS, filter_range
+from .params import current_names
 from .sensors import Sensor
 
 __all__ = ["NO_RETURN", "FusionParams", "PreparedScan", "Scan", "check_pose", "prepare_scan"]
@@ -142,7 +143,7 @@ class FusionParams:
         Default noise model; a scan's own ``noise`` overrides it.
     filter : {"none", "mean5", "median3"}
         Range-map filter applied before fusion.
-    max_discontinuity_m : float or None
+    max_discontinuity : float or None
         Depth-discontinuity test: a point whose four neighbouring ranges spread by more gets
         no information. ``None`` disables it.
     no_return : {"free", "invalid"}
@@ -152,7 +153,7 @@ class FusionParams:
 
     noise: NoiseModel
     filter: str = "none"
-    max_discontinuity_m: float | None = None
+    max_discontinuity: float | None = None
     no_return: str = "free"
 
     def __post_init__(self) -> None:
@@ -168,8 +169,8 @@ class FusionParams:
             raise InvalidInputError(
                 "no_return", f"must be one of {', '.join(NO_RETURN)}, got {self.no_return!r}"
             )
-        if self.max_discontinuity_m is not None:
-            value = self.max_discontinuity_m
+        if self.max_discontinuity is not None:
+            value = self.max_discontinuity
             if (
                 isinstance(value, bool)
                 or not isinstance(value, (int, float))
@@ -178,22 +179,23 @@ class FusionParams:
                 raise InvalidInputError(
                     "max_discontinuity", f"must be a positive number of metres, got {value!r}"
                 )
-            object.__setattr__(self, "max_discontinuity_m", float(value))
+            object.__setattr__(self, "max_discontinuity", float(value))
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "noise": self.noise.to_dict(),
             "filter": self.filter,
-            "max_discontinuity_m": self.max_discontinuity_m,
+            "max_discontinuity": self.max_discontinuity,
             "no_return": self.no_return,
         }
 
     @staticmethod
     def from_dict(data: dict[str, Any]) -> FusionParams:
+        data = current_names(data)
         return FusionParams(
             noise=NoiseModel.from_dict(data["noise"]),
             filter=data.get("filter", "none"),
-            max_discontinuity_m=data.get("max_discontinuity_m"),
+            max_discontinuity=data.get("max_discontinuity"),
             no_return=data.get("no_return", "free"),
         )
 
@@ -210,13 +212,13 @@ class PreparedScan:
     M: np.ndarray  # (3, 3) R^T: p_S = M @ x_W + c
     c: np.ndarray  # (3,)
     T_W_S: np.ndarray
-    eps0: float
-    eps1: float
+    eps: float  # eps0 of METHOD §1: eps(r) = eps + eps_per_m * r
+    eps_per_m: float
     rho: float
     falloff: float  # < 0: eps at that range
     shape: int
     q_rho: int
-    max_disc: float  # < 0: no discontinuity test
+    max_discontinuity: float  # < 0: no discontinuity test
     # the tile tests' statistics, computed on first use (see pyramid)
     _pyramid: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(
         default_factory=list, repr=False
@@ -233,8 +235,8 @@ class PreparedScan:
         pyramid, and the fusion pass computes the bounds anyway, so a batch computes them
         once per scan instead of twice."""
         args = (
-            self.kind, self.params, self.range_m, self.eps0, self.eps1, self.falloff,
-            self.max_disc, scratch,
+            self.kind, self.params, self.range_m, self.eps, self.eps_per_m, self.falloff,
+            self.max_discontinuity, scratch,
         )  # fmt: skip
         if self._pyramid:
             return _sampling.quad_bounds_array(*args)
@@ -262,11 +264,11 @@ class PreparedScan:
         return float(reach[levels[-1, 0]])
 
     def noise_args(self) -> tuple[float, float, float, float, int, int]:
-        return self.eps0, self.eps1, self.rho, self.falloff, self.shape, self.q_rho
+        return self.eps, self.eps_per_m, self.rho, self.falloff, self.shape, self.q_rho
 
     def band_lo_hi(self, r: float, margin_m: float) -> tuple[float, float]:
         """Distances ``[r - eps - margin, r + eps + falloff]`` of the surface band at range r."""
-        eps = self.eps0 + self.eps1 * r
+        eps = self.eps + self.eps_per_m * r
         f = self.falloff if self.falloff > 0.0 else eps
         return r - eps - margin_m, r + eps + f
 
@@ -292,7 +294,7 @@ def prepare_scan(scan: Scan, params: FusionParams) -> PreparedScan:
             rng = surface
     noise = scan.noise if scan.noise is not None else params.noise
     eps0, eps1, rho, falloff, shape, q_rho = noise.kernel_args()
-    max_disc = -1.0 if params.max_discontinuity_m is None else params.max_discontinuity_m
+    max_disc = -1.0 if params.max_discontinuity is None else params.max_discontinuity
     kind, sensor_params, table = scan.sensor.kernel_args()
     R = scan.T_W_S[:3, :3]
     M = np.ascontiguousarray(R.T)
@@ -306,11 +308,11 @@ def prepare_scan(scan: Scan, params: FusionParams) -> PreparedScan:
         M=M,
         c=c,
         T_W_S=scan.T_W_S,
-        eps0=eps0,
-        eps1=eps1,
+        eps=eps0,
+        eps_per_m=eps1,
         rho=rho,
         falloff=falloff,
         shape=shape,
         q_rho=q_rho,
-        max_disc=max_disc,
+        max_discontinuity=max_disc,
     )

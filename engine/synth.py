@@ -336,7 +336,7 @@ class SyntheticDataset:
         The sensor of every scan.
     scans : list of (str, Scan)
         ``("scan_0000", Scan), ...`` in order.
-    bounds_m : (x0, y0, z0, x1, y1, z1)
+    bounds : (x0, y0, z0, x1, y1, z1)
         Region of interest for closed-mode fusion: the scene's solids plus a small margin.
     """
 
@@ -344,7 +344,7 @@ class SyntheticDataset:
     scene: AnalyticScene
     sensor: Sensor
     scans: list[tuple[str, Scan]]
-    bounds_m: tuple[float, float, float, float, float, float]
+    bounds: tuple[float, float, float, float, float, float]
 
 
 def _check_views(views: Any) -> int | None:
@@ -444,4 +444,4 @@ def make_dataset(
         scans.append((f"scan_{k:04d}", Scan(range_m=range_m, T_W_S=T_W_S, sensor=sensor)))
     x0, y0, z0, x1, y1, z1 = scene.bounds()
     bounds = (x0 - margin, y0 - margin, z0 - margin, x1 + margin, y1 + margin, z1 + margin)
-    return SyntheticDataset(name=name, scene=scene, sensor=sensor, scans=scans, bounds_m=bounds)
+    return SyntheticDataset(name=name, scene=scene, sensor=sensor, scans=scans, bounds=bounds)

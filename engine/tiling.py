@@ -366,9 +366,9 @@ def classify_tiles(
     _classify_many(
         scan.kind,
         keys,
-        grid.tile_size_vox,
+        grid.tile_size,
         float(halo),
-        grid.voxel_size_m,
+        grid.voxel_size,
         scan.M,
         scan.c,
         scan.origin_W,
@@ -1013,8 +1013,8 @@ def _band_kernels(kind: int):
 
 
 def _band_tile_keys(scan: PreparedScan, grid: GridSpec, scratch: Scratch | None) -> np.ndarray:
-    h = grid.voxel_size_m
-    T = grid.tile_size_vox
+    h = grid.voxel_size
+    T = grid.tile_size
     margin = BAND_MARGIN_VOX * h
     R = np.ascontiguousarray(scan.T_W_S[:3, :3])
     t = np.ascontiguousarray(scan.T_W_S[:3, 3])
@@ -1022,7 +1022,7 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec, scratch: Scratch | None)
     pixel_ranges, quad_nodes, band_tiles = _band_kernels(scan.kind)
     ranges = scratch_array(scratch, "pixel_ranges", (6, *rng.shape), np.int32)
     pixel_ranges(
-        rng, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff, margin, h, T,
+        rng, scan.params, scan.table, R, t, scan.eps, scan.eps_per_m, scan.falloff, margin, h, T,
         ranges,
     )  # fmt: skip
     # the node pyramid: nodes of 2 x 2 quads, then 2 x 2 merges up to _TOP_NODES nodes
@@ -1030,11 +1030,11 @@ def _band_tile_keys(scan: PreparedScan, grid: GridSpec, scratch: Scratch | None)
     levels = pyramid_levels(-(-(rng.shape[0] - 1) // 2), -(-nqu // 2), _TOP_NODES)
     n_nodes = int(levels[-1, 0] + levels[-1, 1] * levels[-1, 2])
     nodes = scratch_array(scratch, "nodes", (n_nodes, 4), np.int64)
-    quad_nodes(rng, ranges, scan.params, scan.max_disc, nodes)
+    quad_nodes(rng, ranges, scan.params, scan.max_discontinuity, nodes)
     _merge_levels(nodes, levels)
     args = (
-        rng, ranges, scan.params, scan.table, R, t, scan.eps0, scan.eps1, scan.falloff,
-        scan.max_disc, margin, h, T, nodes, levels,
+        rng, ranges, scan.params, scan.table, R, t, scan.eps, scan.eps_per_m, scan.falloff,
+        scan.max_discontinuity, margin, h, T, nodes, levels,
     )  # fmt: skip
     # one walk with room for _WALK_ROOM keys per top node; the rare top node that emits
     # more (a LiDAR's far rings) walks again into room of its exact size
@@ -1097,8 +1097,8 @@ def bounding_sphere(scan: Scan, params: FusionParams) -> tuple[np.ndarray, float
     if not math.isfinite(r_max):
         return origin, 0.0
     noise = scan.noise if scan.noise is not None else params.noise
-    eps = noise.eps_m + noise.eps_per_m * r_max
-    falloff = noise.falloff_m if noise.falloff_m is not None else eps
+    eps = noise.eps + noise.eps_per_m * r_max
+    falloff = noise.falloff if noise.falloff is not None else eps
     kind, sensor_params, _ = scan.sensor.kernel_args()
     return origin, _sphere_radius(kind, sensor_params, widened(r_max + eps + falloff))
 
@@ -1154,6 +1154,6 @@ def tiles_touched(scan: PreparedScan, grid: GridSpec, scratch: Scratch | None = 
         return _roi_tiles_in_view(scan, grid)
     # no pyramid needed: a scan without a valid quad has no band
     keys = _band_tile_keys(scan, grid, scratch)
-    if grid.bounds_m is not None:
+    if grid.bounds is not None:
         keys = keys[_inside_roi(grid, keys)]
     return keys

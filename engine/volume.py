@@ -197,19 +197,19 @@ class DenseGrid:
 
 
 def dense_logodds(
-    store: TileStore, grid: GridSpec, bounds_m: Sequence[float] | None = None
+    store: TileStore, grid: GridSpec, bounds: Sequence[float] | None = None
 ) -> DenseGrid:
     """Decode the tiles into a dense grid.
 
-    The grid covers the voxels whose centres lie in ``bounds_m``, else in the grid's region of
+    The grid covers the voxels whose centres lie in ``bounds``, else in the grid's region of
     interest, else the bounding box of all tiles. Voxels in no tile are unknown (NaN).
     """
     T = store.tile_size
     keys = store.keys()
-    if bounds_m is not None:
-        box = cast("Bounds", tuple(bounds_m))  # GridSpec checks it
-        lo, hi = GridSpec(grid.voxel_size_m, T, "mapping", box).roi_voxels()
-    elif grid.bounds_m is not None:
+    if bounds is not None:
+        box = cast("Bounds", tuple(bounds))  # GridSpec checks it
+        lo, hi = GridSpec(grid.voxel_size, T, "mapping", box).roi_voxels()
+    elif grid.bounds is not None:
         lo, hi = grid.roi_voxels()
     elif len(keys):
         lo = keys.min(axis=0) * T
@@ -240,7 +240,7 @@ def dense_logodds(
                     tile[src_lo[0] : src_hi[0], src_lo[1] : src_hi[1], src_lo[2] : src_hi[2]]
                 )
             )
-    h = grid.voxel_size_m
+    h = grid.voxel_size
     return DenseGrid(
         logodds=out,
         origin=(lo.astype(np.float64) + 0.5) * h,

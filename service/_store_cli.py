@@ -65,14 +65,14 @@ def _store_and_integrate(
     info = scene.catalog.n_tiles(scene.scene_id)
     print(
         f"{stored} new scans stored; fused {pending} into {info} tiles of "
-        f"{scene.grid.tile_size_vox}^3 voxels ({report.voxel_updates:,} voxel updates, "
+        f"{scene.grid.tile_size}^3 voxels ({report.voxel_updates:,} voxel updates, "
         f"{report.tiles_written} tiles written) in {time.perf_counter() - t0:.2f} s"
     )
 
 
 def _write_scene_outputs(args: argparse.Namespace, scene: Scene) -> None:
     def mesh(refine: bool, bounds: Sequence[float] | None) -> Mesh:
-        result, counts = scene.extract_mesh(refine=refine, bounds_m=bounds)
+        result, counts = scene.extract_mesh(refine=refine, bounds=bounds)
         print(
             f"meshed {counts['meshed']} tiles, reused {counts['reused']} cached tile meshes "
             f"of {counts['tiles']}"
@@ -183,8 +183,8 @@ def _cmd_info(args: argparse.Namespace) -> int:
     grid = info["grid"]
     print(f"store      {info['store']} (layout version {info['version']})")
     print(f"scans      {info['scans']} ({states})")
-    print(f"tiles      {info['tiles']} of {grid['tile_size_vox']}^3 voxels")
-    print(f"voxel      {grid['voxel_size_m']} m, mode {grid['mode']}, bounds {grid['bounds_m']}")
+    print(f"tiles      {info['tiles']} of {grid['tile_size']}^3 voxels")
+    print(f"voxel      {grid['voxel_size']} m, mode {grid['mode']}, bounds {grid['bounds']}")
     print(f"on disk    {info['bytes_on_disk'] / 2**20:.1f} MiB")
     return 0
 

@@ -224,19 +224,19 @@ def create_app(settings: Settings) -> FastAPI:
         return {
             "id": row.id,
             "name": row.name,
-            "voxel_size": grid.voxel_size_m,
-            "tile_size": grid.tile_size_vox,
+            "voxel_size": grid.voxel_size,
+            "tile_size": grid.tile_size,
             "mode": grid.mode,
-            "bounds": None if grid.bounds_m is None else list(grid.bounds_m),
+            "bounds": None if grid.bounds is None else list(grid.bounds),
             "noise": {
-                "eps": n.eps_m,
+                "eps": n.eps,
                 "eps_per_m": n.eps_per_m,
                 "rho": n.rho,
-                "falloff": n.falloff_m if n.falloff_m is not None else n.eps_m,
+                "falloff": n.falloff if n.falloff is not None else n.eps,
                 "shape": n.shape,
             },
             "filter": params.filter,
-            "max_discontinuity": params.max_discontinuity_m,
+            "max_discontinuity": params.max_discontinuity,
             "no_return": params.no_return,
             "created_at": row.created_at,
         }
@@ -304,16 +304,16 @@ def create_app(settings: Settings) -> FastAPI:
         noise_in = body.noise or NoiseIn()
         eps = noise_in.eps if noise_in.eps is not None else EPS_PER_VOXEL * body.voxel_size
         noise = NoiseModel(
-            eps_m=eps,
+            eps=eps,
             eps_per_m=noise_in.eps_per_m,
             rho=noise_in.rho,
-            falloff_m=noise_in.falloff,
+            falloff=noise_in.falloff,
             shape=noise_in.shape,
         )
         params = FusionParams(
             noise=noise,
             filter=body.filter,
-            max_discontinuity_m=body.max_discontinuity,
+            max_discontinuity=body.max_discontinuity,
             no_return=body.no_return,
         )
         scene_id = new_id()
@@ -432,7 +432,7 @@ def create_app(settings: Settings) -> FastAPI:
             if len(body.bounds) != 6:
                 raise HTTPException(422, "bounds: must be six numbers [x0, y0, z0, x1, y1, z1]")
             grid, _ = store().scene_spec(scene_id)
-            GridSpec(grid.voxel_size_m, grid.tile_size_vox, "mapping", tuple(body.bounds))  # type: ignore[arg-type]
+            GridSpec(grid.voxel_size, grid.tile_size, "mapping", tuple(body.bounds))  # type: ignore[arg-type]
         payload = {"bounds": body.bounds, "refine": body.refine}
         job = store().catalog.create_job(new_id(), who, scene_id, "reconstruct", payload)
         dispatcher.wake()
@@ -514,8 +514,8 @@ def _slice_png(store: Store, scene_id: str, grid: GridSpec, axis: int, at: float
     unknown grey; the image covers the tiles that cross the plane."""
     from rangefuse.storage.zarr_tiles import ZarrTiles
 
-    T = grid.tile_size_vox
-    h = grid.voxel_size_m
+    T = grid.tile_size
+    h = grid.voxel_size
     index = int(math.floor(at / h))  # the voxel layer whose centre is nearest below
     keys = unpack_keys(store.catalog.tile_keys(scene_id))
     keys = keys[keys[:, axis] == index // T]

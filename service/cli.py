@@ -68,7 +68,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     scene_json = json.dumps(
         {
             "scene": data.name,
-            "bounds_m": list(data.bounds_m),
+            "bounds": list(data.bounds),
             "noise": args.noise,
             "seed": args.seed,
             "solids": data.scene.to_dict(),
@@ -92,7 +92,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     print(
         f"wrote {len(data.scans)} {data.sensor.model} scans of the {data.name} scene to {out} "
         f"in {time.perf_counter() - t0:.1f} s; region of interest "
-        f"{' '.join(f'{b:g}' for b in data.bounds_m)}"
+        f"{' '.join(f'{b:g}' for b in data.bounds)}"
     )
     return 0
 
@@ -103,7 +103,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 def _noise_from_args(args: argparse.Namespace) -> NoiseModel:
     eps = args.eps if args.eps is not None else EPS_PER_VOXEL * args.voxel_size
     return NoiseModel(
-        eps_m=eps, eps_per_m=args.eps_per_m, rho=args.rho, falloff_m=args.falloff, shape=args.shape
+        eps=eps, eps_per_m=args.eps_per_m, rho=args.rho, falloff=args.falloff, shape=args.shape
     )
 
 
@@ -119,7 +119,7 @@ def _bounds_from_data(scans: Iterable[Scan], noise: NoiseModel, voxel_size: floa
             max_range = max(max_range, float(np.nanmax(scan.range_m[np.isfinite(scan.range_m)])))
     if not np.all(np.isfinite(lo)):
         raise CommandError("closed mode: no scan has a measured point; give --bounds")
-    pad = 2.0 * (noise.eps_m + noise.eps_per_m * max_range) + 2.0 * voxel_size
+    pad = 2.0 * (noise.eps + noise.eps_per_m * max_range) + 2.0 * voxel_size
     return tuple(float(x) for x in np.concatenate([lo - pad, hi + pad]))
 
 
@@ -130,7 +130,7 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
     params = FusionParams(
         noise=noise,
         filter=args.filter,
-        max_discontinuity_m=args.max_discontinuity,
+        max_discontinuity=args.max_discontinuity,
         no_return=args.no_return,
     )
     GridSpec(args.voxel_size, args.tile_size, "mapping", args.bounds)  # validate early
@@ -158,11 +158,11 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     n_tiles = len(volume.tile_keys())
     print(
-        f"fused {report.scans} scans into {n_tiles} tiles of {grid.tile_size_vox}^3 voxels "
+        f"fused {report.scans} scans into {n_tiles} tiles of {grid.tile_size}^3 voxels "
         f"({report.voxel_updates:,} voxel updates) in {elapsed:.2f} s"
     )
     write_outputs(
-        args, volume.to_dense, lambda refine, b: volume.extract_mesh(refine=refine, bounds_m=b)
+        args, volume.to_dense, lambda refine, b: volume.extract_mesh(refine=refine, bounds=b)
     )
     return 0
 

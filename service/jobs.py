@@ -75,7 +75,7 @@ def run_job(data_dir: str, job_id: str, cache_mb: float) -> dict[str, Any]:
                         scene.integrate_pending()
                     mesh, counts = scene.extract_mesh(
                         refine=bool(job.payload.get("refine", True)),
-                        bounds_m=job.payload.get("bounds"),
+                        bounds=job.payload.get("bounds"),
                     )
                     path = _mesh_path(store, job.scene_id, job_id)
                     arrays = {

@@ -100,7 +100,7 @@ def decode_scan(range_bytes: bytes, meta_bytes: bytes) -> UploadedScan:
 def _noise(data: Any) -> NoiseModel:
     if not isinstance(data, dict):
         raise UploadError("meta.noise: must be an object")
-    mapping = {"eps": "eps_m", "eps_per_m": "eps_per_m", "rho": "rho", "falloff": "falloff_m"}
+    mapping = {"eps": "eps", "eps_per_m": "eps_per_m", "rho": "rho", "falloff": "falloff"}
     kwargs: dict[str, Any] = {}
     for key, value in data.items():
         if key == "shape":
@@ -111,7 +111,7 @@ def _noise(data: Any) -> NoiseModel:
             raise UploadError(
                 f"meta.noise.{key}: unknown (known: eps, eps_per_m, rho, falloff, shape)"
             )
-    if "eps_m" not in kwargs:
+    if "eps" not in kwargs:
         raise UploadError("meta.noise.eps: missing")
     return NoiseModel(**kwargs)
 

@@ -174,7 +174,7 @@ class Store:
     ) -> None:
         """Record a scene and create its Zarr group and tile array."""
         group = self.scene_path(scene_id) / "scene.zarr"
-        ZarrTiles.create(group, grid.tile_size_vox)
+        ZarrTiles.create(group, grid.tile_size)
         with self.catalog.transaction():
             self.catalog.create_scene(
                 scene_id, name or scene_id, tenant, grid.to_dict(), params.to_dict()
@@ -319,6 +319,7 @@ def _check_same(path: Path, what: str, stored: dict[str, Any], given: Any) -> No
     if given is None:
         return
     wanted = given.to_dict()
+    stored = type(given).from_dict(stored).to_dict()  # a store may use legacy names
     diff = [k for k in sorted(set(stored) | set(wanted)) if stored.get(k) != wanted.get(k)]
     if diff:
         details = ", ".join(
@@ -470,7 +471,7 @@ def integrate_unit(unit: TileUnit) -> UnitResult:
     group = Path(unit.group_path)
     tiles = ZarrTiles.open(group)
     archive = ScanArchive(group)
-    cache = TileCache(tiles, grid.tile_size_vox, int(unit.cache_mb * 2**20))
+    cache = TileCache(tiles, grid.tile_size, int(unit.cache_mb * 2**20))
     scans = [prepare_scan(archive.get(scan_id), params) for scan_id, _, _ in unit.scans]
     n = len(unit.keys)
     # per scan and tile: -1 out of view, 0 partial, 1 free throughout
@@ -558,7 +559,7 @@ class _TileReader:
 
     def __init__(self, scene: Scene) -> None:
         self._scene = scene
-        self.tile_size = scene.grid.tile_size_vox
+        self.tile_size = scene.grid.tile_size
 
     def keys(self) -> np.ndarray:
         return unpack_keys(self._scene.catalog.tile_keys(self._scene.scene_id))
@@ -931,25 +932,25 @@ class Scene:
     def tile_keys(self) -> np.ndarray:
         return unpack_keys(self.catalog.tile_keys(self.scene_id))
 
-    def to_dense(self, bounds_m: Sequence[float] | None = None) -> DenseGrid:
+    def to_dense(self, bounds: Sequence[float] | None = None) -> DenseGrid:
         """The fused log-odds as a dense grid (see :func:`engine.dense_logodds`)."""
-        return dense_logodds(_TileReader(self), self.grid, bounds_m)
+        return dense_logodds(_TileReader(self), self.grid, bounds)
 
     def _scan_stream(self, keys: np.ndarray) -> Iterator[PreparedScan]:
         for row in self._scans_near(keys):
             yield self._load(row.id)
 
     def extract_mesh(
-        self, *, refine: bool = True, bounds_m: Sequence[float] | None = None
+        self, *, refine: bool = True, bounds: Sequence[float] | None = None
     ) -> tuple[Mesh, dict[str, int]]:
         """The surface as one mesh, re-meshing only tiles whose data (or halo) changed since
         they were last meshed with the same options; returns the mesh and counts."""
-        lo, hi = mesh_region(self.grid, bounds_m)
+        lo, hi = mesh_region(self.grid, bounds)
         reader = _TileReader(self)
         keys = tiles_to_mesh(reader.keys(), self.grid, lo, hi)
         packed = pack_keys(keys)
         options = json.dumps(
-            {"refine": bool(refine), "bounds": None if bounds_m is None else list(bounds_m)}
+            {"refine": bool(refine), "bounds": None if bounds is None else list(bounds)}
         )
         epochs = self.catalog.epochs(self.scene_id, packed)
         cached = self.catalog.mesh_cache_get(self.scene_id, packed, options)
@@ -966,7 +967,7 @@ class Scene:
                 _decode_tile_meshes(keys[hit], [cached[p][1] for p in packed[hit].tolist()])
             )
         todo = np.flatnonzero(~hit)
-        batch = max(1, _cache_tiles(self.cache_mb, self.grid.tile_size_vox) // 24)
+        batch = max(1, _cache_tiles(self.cache_mb, self.grid.tile_size) // 24)
         for start in range(0, len(todo), batch):
             rows = todo[start : start + batch]
             tm = mesh_tiles(
@@ -976,7 +977,7 @@ class Scene:
                 self._scan_stream(keys[rows]) if refine else (),
                 keys=keys[rows],
                 refine=refine,
-                bounds_m=bounds_m,
+                bounds=bounds,
             )
             order = np.searchsorted(pack_keys(tm.keys), packed[rows])
             entries = [

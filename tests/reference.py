@@ -160,16 +160,16 @@ def fuse(
         T = scan.T_W_S
         p_S = (x_W - T[:3, 3]) @ T[:3, :3]
         u, v, d = project(sensor, p_S)
-        r, ok = bilinear(sensor, img, u, v, params.max_discontinuity_m)
+        r, ok = bilinear(sensor, img, u, v, params.max_discontinuity)
         alpha = d - r
-        eps = noise.eps_m + noise.eps_per_m * r
-        f = eps if noise.falloff_m is None else np.full_like(eps, noise.falloff_m)
+        eps = noise.eps + noise.eps_per_m * r
+        f = eps if noise.falloff is None else np.full_like(eps, noise.falloff)
         with np.errstate(invalid="ignore"):
             informed = ok & (alpha <= eps + f)
             c = certainty(alpha, eps, f, noise)
         total[informed] += np.log(c[informed] / (1 - c[informed]))
         count[informed] += 1
-        _, on_surface = bilinear(sensor, surface, u, v, params.max_discontinuity_m)
+        _, on_surface = bilinear(sensor, surface, u, v, params.max_discontinuity)
         with np.errstate(invalid="ignore"):
             band |= on_surface & ok & (np.abs(alpha) <= eps)
     logodds = np.where(count > 0, total, np.nan)

@@ -32,7 +32,7 @@ def _scan(name: str, seed: int = 0, noise: NoiseModel | None = None) -> Scan:
 @pytest.mark.parametrize("name", sorted(scenes.SENSORS))
 def test_round_trip_every_sensor(tmp_path: Path, name: str) -> None:
     archive = ScanArchive(tmp_path / "scene.zarr")
-    noise = NoiseModel(0.01, 0.002, falloff_m=0.05) if name.startswith("sph") else None
+    noise = NoiseModel(0.01, 0.002, falloff=0.05) if name.startswith("sph") else None
     scan = _scan(name, noise=noise)
     checksum = archive.put(name, scan, name=f"{name}.npz")
     assert checksum == scan_checksum(scan) == archive.checksum(name)

@@ -17,7 +17,7 @@ from tests import reference
 
 
 def test_linear_shape_matches_method() -> None:
-    noise = NoiseModel(eps_m=0.01, rho=0.1)
+    noise = NoiseModel(eps=0.01, rho=0.1)
     alpha = np.array([-1.0, -0.011, -0.01, -0.005, 0.0, 0.005, 0.01, 0.015, 0.02, 0.0201])
     c = noise.certainty(alpha, np.ones_like(alpha))
     expected = [0.1, 0.1, 0.1, 0.3, 0.5, 0.7, 0.9, 0.7, 0.5, np.nan]
@@ -25,21 +25,21 @@ def test_linear_shape_matches_method() -> None:
 
 
 def test_falloff_and_range_dependent_eps() -> None:
-    noise = NoiseModel(eps_m=0.01, eps_per_m=0.01, rho=0.1, falloff_m=0.05)
+    noise = NoiseModel(eps=0.01, eps_per_m=0.01, rho=0.1, falloff=0.05)
     r = 2.0  # eps = 0.03
     c = noise.certainty(np.array([-0.03, 0.0, 0.03, 0.055, 0.08, 0.0801]), np.full(6, r))
     np.testing.assert_allclose(c, [0.1, 0.5, 0.9, 0.7, 0.5, np.nan], atol=1e-12)
 
 
 def test_erf_shape_is_continuous_monotone_and_symmetric() -> None:
-    noise = NoiseModel(eps_m=0.02, rho=0.05, shape="erf")
+    noise = NoiseModel(eps=0.02, rho=0.05, shape="erf")
     alpha = np.linspace(-0.1, 0.02, 2001)
     c = noise.certainty(alpha, np.ones_like(alpha))
     assert np.all(np.diff(c) > 0)
     assert c[0] == pytest.approx(0.05, abs=1e-6)
     assert noise.certainty(np.array([0.0]), np.array([1.0]))[0] == pytest.approx(0.5)
     # the same slope at the surface as the linear ramp
-    lin = NoiseModel(eps_m=0.02, rho=0.05)
+    lin = NoiseModel(eps=0.02, rho=0.05)
     h = 1e-6
     slope_erf = np.diff(noise.certainty(np.array([-h, h]), np.ones(2)))[0] / (2 * h)
     slope_lin = np.diff(lin.certainty(np.array([-h, h]), np.ones(2)))[0] / (2 * h)
@@ -58,7 +58,7 @@ def test_erf_shape_is_continuous_monotone_and_symmetric() -> None:
 
 @pytest.mark.parametrize("shape", ["linear", "erf"])
 def test_kernel_certainty_matches_reference(shape: str) -> None:
-    noise = NoiseModel(eps_m=0.01, eps_per_m=0.003, rho=0.07, falloff_m=0.02, shape=shape)
+    noise = NoiseModel(eps=0.01, eps_per_m=0.003, rho=0.07, falloff=0.02, shape=shape)
     rng = np.random.default_rng(0)
     r = rng.uniform(0.5, 5, 1000)
     alpha = rng.uniform(-0.05, 0.05, 1000)
@@ -73,7 +73,7 @@ def test_kernel_certainty_matches_reference(shape: str) -> None:
 @settings(max_examples=200, deadline=None)
 @given(alpha=st.floats(-1, 1), r=st.floats(0.1, 50), rho=st.floats(0.001, 0.49))
 def test_contribution_is_quantised_logit(alpha, r, rho) -> None:
-    noise = NoiseModel(eps_m=0.02, eps_per_m=0.001, rho=rho)
+    noise = NoiseModel(eps=0.02, eps_per_m=0.001, rho=rho)
     eps0, eps1, rho_, falloff, shape, q_rho = noise.kernel_args()
     q, informed = contribution(alpha, r, eps0, eps1, rho_, falloff, shape, q_rho)
     c = noise.certainty(np.array([alpha]), np.array([r]))[0]
@@ -84,7 +84,7 @@ def test_contribution_is_quantised_logit(alpha, r, rho) -> None:
 
 def test_half_certainty_changes_nothing_but_informs() -> None:
     # at the end of the fall-off C = 1/2 exactly: logit 0, but the voxel is informed
-    noise = NoiseModel(eps_m=0.01, rho=0.1)
+    noise = NoiseModel(eps=0.01, rho=0.1)
     q, informed = contribution(0.02, 1.0, *noise.kernel_args())
     assert informed and q == 0
     packed = np.array([pack(q)], np.int64)
@@ -115,17 +115,17 @@ def test_unknown_differs_from_balanced_evidence() -> None:
 @pytest.mark.parametrize(
     ("kwargs", "field"),
     [
-        ({"eps_m": 0.0}, "eps"),
-        ({"eps_m": -0.01}, "eps"),
-        ({"eps_m": float("nan")}, "eps"),
-        ({"eps_m": 0.01, "rho": 0.0}, "rho"),
-        ({"eps_m": 0.01, "rho": 0.5}, "rho"),
-        ({"eps_m": 0.01, "rho": 0.7}, "rho"),
-        ({"eps_m": 0.01, "eps_per_m": -0.1}, "eps_per_m"),
-        ({"eps_m": 0.01, "falloff_m": 0.0}, "falloff"),
-        ({"eps_m": 0.01, "shape": "cubic"}, "shape"),
-        ({"eps_m": "small"}, "eps"),
-        ({"eps_m": True}, "eps"),
+        ({"eps": 0.0}, "eps"),
+        ({"eps": -0.01}, "eps"),
+        ({"eps": float("nan")}, "eps"),
+        ({"eps": 0.01, "rho": 0.0}, "rho"),
+        ({"eps": 0.01, "rho": 0.5}, "rho"),
+        ({"eps": 0.01, "rho": 0.7}, "rho"),
+        ({"eps": 0.01, "eps_per_m": -0.1}, "eps_per_m"),
+        ({"eps": 0.01, "falloff": 0.0}, "falloff"),
+        ({"eps": 0.01, "shape": "cubic"}, "shape"),
+        ({"eps": "small"}, "eps"),
+        ({"eps": True}, "eps"),
     ],
 )
 def test_invalid_noise(kwargs: dict, field: str) -> None:
@@ -135,10 +135,10 @@ def test_invalid_noise(kwargs: dict, field: str) -> None:
 
 
 def test_noise_dict_round_trip() -> None:
-    noise = NoiseModel(eps_m=0.01, eps_per_m=0.002, rho=0.1, falloff_m=0.03, shape="erf")
+    noise = NoiseModel(eps=0.01, eps_per_m=0.002, rho=0.1, falloff=0.03, shape="erf")
     assert NoiseModel.from_dict(noise.to_dict()) == noise
     with pytest.raises(InvalidNoiseError, match="unknown noise parameter"):
-        NoiseModel.from_dict({"eps_m": 0.01, "sigma": 2})
+        NoiseModel.from_dict({"eps": 0.01, "sigma": 2})
 
 
 @given(st.floats(min_value=5e-324, max_value=1.7e308, allow_nan=False, allow_infinity=False))

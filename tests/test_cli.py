@@ -77,14 +77,14 @@ def fuse_in_process(
 ) -> DenseGrid:
     """What ``rangefuse fuse`` documents: eps defaults to 2 voxels, rho to 0.05."""
     noise = NoiseModel(
-        eps_m=2.0 * voxel_size if eps is None else eps,
+        eps=2.0 * voxel_size if eps is None else eps,
         eps_per_m=eps_per_m,
         rho=rho,
-        falloff_m=falloff,
+        falloff=falloff,
         shape=shape,
     )
     params = FusionParams(
-        noise, filter=filter, max_discontinuity_m=max_discontinuity, no_return=no_return
+        noise, filter=filter, max_discontinuity=max_discontinuity, no_return=no_return
     )
     box = None if bounds is None else cast("Bounds", tuple(bounds))
     volume = Volume(GridSpec(voxel_size, tile_size, mode, box), params)
@@ -140,7 +140,7 @@ def object_scans(object_dir: Path) -> list[tuple[str, Scan]]:
 
 @pytest.fixture(scope="module")
 def bounds(object_data: SyntheticDataset) -> list[float]:
-    return [round(b, 3) for b in object_data.bounds_m]
+    return [round(b, 3) for b in object_data.bounds]
 
 
 @pytest.fixture(scope="module")
@@ -236,7 +236,7 @@ def test_synth_writes_a_dataset(
     assert meta["scene"] == scene
     assert meta["noise"] == noise
     assert meta["seed"] == 7
-    assert meta["bounds_m"] == list(expected.bounds_m)
+    assert meta["bounds"] == list(expected.bounds)
 
 
 def test_synth_seed_and_rerun(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -40,13 +40,13 @@ H = 0.02  # voxel size of the small scene
 
 
 def _params(**kwargs) -> FusionParams:
-    noise = kwargs.pop("noise", NoiseModel(eps_m=0.03, rho=0.08))
+    noise = kwargs.pop("noise", NoiseModel(eps=0.03, rho=0.08))
     return FusionParams(noise=noise, **kwargs)
 
 
 def _dense_packed(volume: Volume, lo: np.ndarray, shape: tuple[int, ...]):
     """Packed voxels over [lo, lo + shape) and a mask of voxels inside allocated tiles."""
-    T = volume.grid.tile_size_vox
+    T = volume.grid.tile_size
     packed = np.zeros(shape, np.int64)
     allocated = np.zeros(shape, bool)
     keys = volume.tile_keys()
@@ -65,10 +65,10 @@ def _dense_packed(volume: Volume, lo: np.ndarray, shape: tuple[int, ...]):
 
 
 def _compare_with_reference(volume: Volume, scans: list[tuple[str, Scan]], bounds=scenes.BOUNDS):
-    grid = GridSpec(volume.grid.voxel_size_m, volume.grid.tile_size_vox, "mapping", bounds)
+    grid = GridSpec(volume.grid.voxel_size, volume.grid.tile_size, "mapping", bounds)
     lo, hi = grid.roi_voxels()
     shape = tuple(int(x) for x in hi - lo)
-    ref = reference.fuse([s for _, s in scans], volume.params, lo, shape, volume.grid.voxel_size_m)
+    ref = reference.fuse([s for _, s in scans], volume.params, lo, shape, volume.grid.voxel_size)
     packed, allocated = _dense_packed(volume, lo, shape)
     count = decode_count(packed)
     L = decode_logodds(packed)
@@ -103,7 +103,7 @@ def test_mapping_allocation_is_tight() -> None:
     # quad blocks it used to box at once gave 0.49 on this case, quad by quad gives 0.77.
     h, T = 0.01, 16
     data = make_dataset("room", views=6)
-    params = FusionParams(NoiseModel(eps_m=2 * h, rho=0.05))
+    params = FusionParams(NoiseModel(eps=2 * h, rho=0.05))
     grid = GridSpec(h, T, "mapping")
     allocated = needed = 0
     for _, scan in data.scans:
@@ -126,7 +126,7 @@ def test_allocation_walk_overflow_gives_the_same_tiles(
     # The walk holds _WALK_ROOM keys per top node and walks a node again when it emits
     # more; with room for one key nearly every node walks twice, with the same tiles.
     h = 0.02
-    params = FusionParams(NoiseModel(eps_m=2 * h, rho=0.05))
+    params = FusionParams(NoiseModel(eps=2 * h, rho=0.05))
     grid = GridSpec(h, 16, "mapping")
     for _, scan in make_dataset(name, views=2).scans:
         prepared = prepare_scan(scan, params)
@@ -144,7 +144,7 @@ def test_tile_classification_is_conservative_around_a_pinhole() -> None:
     # plane but beside the image's pyramid are OUT (they used to be fused for nothing).
     h, T = 0.02, 8
     data = make_dataset("room", views=3)
-    params = FusionParams(NoiseModel(eps_m=2 * h, rho=0.05))
+    params = FusionParams(NoiseModel(eps=2 * h, rho=0.05))
     grid = GridSpec(h, T, "mapping")
     span = np.arange(-6, 7)
     offsets = np.stack(np.meshgrid(span, span, span, indexing="ij"), -1).reshape(-1, 3)
@@ -176,11 +176,11 @@ def test_tile_classification_is_conservative_around_a_pinhole() -> None:
 @pytest.mark.parametrize(
     "options",
     [
-        {"noise": NoiseModel(eps_m=0.02, rho=0.1, shape="erf")},
-        {"noise": NoiseModel(eps_m=0.01, eps_per_m=0.02, rho=0.05, falloff_m=0.05)},
+        {"noise": NoiseModel(eps=0.02, rho=0.1, shape="erf")},
+        {"noise": NoiseModel(eps=0.01, eps_per_m=0.02, rho=0.05, falloff=0.05)},
         {"filter": "mean5"},
         {"filter": "median3"},
-        {"max_discontinuity_m": 0.05},
+        {"max_discontinuity": 0.05},
         {"no_return": "invalid"},
     ],
     ids=["erf", "eps_per_m+falloff", "mean5", "median3", "discontinuity", "no_return_invalid"],
@@ -197,7 +197,7 @@ def test_per_scan_noise_override_matches_reference() -> None:
     name, first = scans[0]
     scans[0] = (
         name,
-        Scan(first.range_m, first.T_W_S, first.sensor, noise=NoiseModel(eps_m=0.06, rho=0.2)),
+        Scan(first.range_m, first.T_W_S, first.sensor, noise=NoiseModel(eps=0.06, rho=0.2)),
     )
     volume = Volume(GridSpec(H, 8, "closed", scenes.BOUNDS), _params())
     volume.add_many(scans)
@@ -376,7 +376,7 @@ def test_volume_errors() -> None:
     with pytest.raises(InvalidInputError, match="^no_return:"):
         _params(no_return="maybe")
     with pytest.raises(InvalidInputError, match="^max_discontinuity:"):
-        _params(max_discontinuity_m=-1.0)
+        _params(max_discontinuity=-1.0)
     # a failed add leaves the volume as it was
     keys_before = volume.tile_keys()
     assert np.array_equal(keys_before, volume.tile_keys())
@@ -401,7 +401,7 @@ def test_bounding_sphere_holds_everything_the_scan_informs(name, filter_name):
 _CACHE_PROBE = """
 from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
 from rangefuse.engine.synth import make_dataset
-params = FusionParams(NoiseModel(eps_m=0.05, rho=0.05))
+params = FusionParams(NoiseModel(eps=0.05, rho=0.05))
 for name, h in (("room", 0.04), ("street", 0.08)):
     data = make_dataset(name, views=1, length_m=4.0 if name == "street" else None)
     volume = Volume(GridSpec(h, 8, "mapping"), params)
@@ -493,7 +493,7 @@ def test_a_prepared_scan_builds_its_tile_statistics_with_its_first_bounds(sensor
     # mapping allocation needs no pyramid; the fusion pass computes the bounds, and the
     # pyramid with them (in partial blocks too: 47 x 39 quads, and a wrapping 180 x 23)
     _, scan = scenes.scans(sensor, 1)[0]
-    prepared = prepare_scan(scan, _params(max_discontinuity_m=0.3))
+    prepared = prepare_scan(scan, _params(max_discontinuity=0.3))
     tiles_touched(prepared, GridSpec(0.05, 8, "mapping"))
     assert not prepared.has_pyramid
     bounds = prepared.quad_bounds().copy()
@@ -517,7 +517,7 @@ data = make_dataset("room", views=2)
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
     for _ in range(2):
-        Volume(GridSpec(0.08, 8, "mapping"), FusionParams(NoiseModel(eps_m=0.1))).add_many(
+        Volume(GridSpec(0.08, 8, "mapping"), FusionParams(NoiseModel(eps=0.1))).add_many(
             data.scans
         )
 print(sum("workqueue" in str(w.message) for w in caught))

@@ -71,7 +71,7 @@ def vertex_map(mesh: Mesh) -> dict[tuple, tuple]:
     }
 
 
-PARAMS = FusionParams(NoiseModel(eps_m=1.0, rho=0.05))
+PARAMS = FusionParams(NoiseModel(eps=1.0, rho=0.05))
 
 
 @pytest.fixture(scope="module")
@@ -79,8 +79,8 @@ def object_volumes():
     """The synthetic object (12 noiseless views) fused in closed mode at 12 mm."""
     data = make_dataset("object", views=12)
     h = 0.012
-    params = FusionParams(NoiseModel(eps_m=h, rho=0.05), max_discontinuity_m=0.05)
-    volume = Volume(GridSpec(h, 16, "closed", data.bounds_m), params)
+    params = FusionParams(NoiseModel(eps=h, rho=0.05), max_discontinuity=0.05)
+    volume = Volume(GridSpec(h, 16, "closed", data.bounds), params)
     volume.add_many(data.scans)
     return data, volume
 
@@ -243,10 +243,10 @@ def test_closed_object_is_watertight_and_accurate(object_volumes):
 def test_mesh_is_the_same_whatever_the_tile_size():
     data = make_dataset("object", views=6)
     h = 0.03
-    params = FusionParams(NoiseModel(eps_m=h, rho=0.05), max_discontinuity_m=0.05)
+    params = FusionParams(NoiseModel(eps=h, rho=0.05), max_discontinuity=0.05)
     meshes = []
     for T in (16, 32, 64):
-        volume = Volume(GridSpec(h, T, "closed", data.bounds_m), params)
+        volume = Volume(GridSpec(h, T, "closed", data.bounds), params)
         volume.add_many(data.scans)
         meshes.append(volume.extract_mesh(refine=True))
     first = meshes[0]
@@ -276,8 +276,8 @@ def test_tiles_meshed_separately_stitch_to_the_whole(object_volumes):
 def test_mesh_does_not_depend_on_scan_order():
     data = make_dataset("object", views=5)
     h = 0.03
-    params = FusionParams(NoiseModel(eps_m=h, rho=0.05))
-    grid = GridSpec(h, 16, "closed", data.bounds_m)
+    params = FusionParams(NoiseModel(eps=h, rho=0.05))
+    grid = GridSpec(h, 16, "closed", data.bounds)
     a, b = Volume(grid, params), Volume(grid, params)
     a.add_many(data.scans)
     for item in reversed(data.scans):
@@ -289,7 +289,7 @@ def test_mesh_does_not_depend_on_scan_order():
 
 def test_one_view_shows_an_inferred_shadow():
     scans = scenes.scans("pinhole_ray", 1)
-    params = FusionParams(NoiseModel(eps_m=0.03, rho=0.05), max_discontinuity_m=0.05)
+    params = FusionParams(NoiseModel(eps=0.03, rho=0.05), max_discontinuity=0.05)
     volume = Volume(GridSpec(0.02, 8, "closed", scenes.BOUNDS), params)
     volume.add_many(scans)
     mesh = volume.extract_mesh()
@@ -305,7 +305,7 @@ def test_one_view_shows_an_inferred_shadow():
 def test_mapping_mode_room_has_open_observed_surfaces():
     data = make_dataset("room", views=4)
     h = 0.05
-    volume = Volume(GridSpec(h, 16, "mapping"), FusionParams(NoiseModel(eps_m=2 * h, rho=0.05)))
+    volume = Volume(GridSpec(h, 16, "mapping"), FusionParams(NoiseModel(eps=2 * h, rho=0.05)))
     volume.add_many(data.scans)
     mesh = volume.extract_mesh(refine=True)
     assert mesh.n_faces > 1000 and not mesh.inferred.any()
@@ -315,13 +315,13 @@ def test_mapping_mode_room_has_open_observed_surfaces():
     assert np.median(d) < 0.2 * h
     # bounds restrict the mesh
     box = (0.0, 0.0, 0.0, 2.0, 2.0, 2.0)
-    part = volume.extract_mesh(bounds_m=box)
+    part = volume.extract_mesh(bounds=box)
     assert 0 < part.n_faces < mesh.n_faces
     assert np.all(part.vertices >= -h) and np.all(part.vertices <= 2.0 + h)
 
 
 def test_empty_volume_gives_an_empty_mesh():
-    volume = Volume(GridSpec(0.05, 8, "mapping"), FusionParams(NoiseModel(eps_m=0.1)))
+    volume = Volume(GridSpec(0.05, 8, "mapping"), FusionParams(NoiseModel(eps=0.1)))
     mesh = volume.extract_mesh()
     assert mesh.n_faces == 0 and mesh.n_vertices == 0
 
@@ -379,7 +379,7 @@ def test_cli_fuse_writes_the_mesh_of_the_python_api(tmp_path, capsys):
     data = make_dataset("object", views=4)
     volume = Volume(
         GridSpec(0.04, 16, "closed", (-0.6, -0.6, -0.2, 0.6, 0.6, 0.8)),
-        FusionParams(NoiseModel(eps_m=0.08, rho=0.05)),
+        FusionParams(NoiseModel(eps=0.08, rho=0.05)),
     )
     volume.add_many(data.scans)
     expected = volume.extract_mesh()

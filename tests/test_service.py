@@ -134,7 +134,7 @@ def _meta(scan, **extra) -> str:
 
 
 def _scene_body(data, **extra) -> dict:
-    return {"name": "obj", "voxel_size": VOXEL, "mode": "closed", "bounds": list(data.bounds_m),
+    return {"name": "obj", "voxel_size": VOXEL, "mode": "closed", "bounds": list(data.bounds),
             "tile_size": 8, **extra}  # fmt: skip
 
 
@@ -193,7 +193,7 @@ def test_end_to_end_matches_the_command_line(client, object_data, tmp_path):
     write_dataset(data_dir, object_data.sensor, object_data.scans)
     out = tmp_path / "cli.ply"
     args = ["fuse", str(data_dir), "--voxel-size", str(VOXEL), "--mode", "closed", "--quiet"]
-    args += ["--tile-size", "8", "--bounds", *map(str, object_data.bounds_m), "-o", str(out)]
+    args += ["--tile-size", "8", "--bounds", *map(str, object_data.bounds), "-o", str(out)]
     assert main(args) == 0
     local = trimesh.load(out, process=False)
     assert len(served.faces) == len(local.faces) > 100

@@ -28,7 +28,7 @@ from rangefuse.storage.scene import (
 )
 
 H = 0.04
-PARAMS = FusionParams(NoiseModel(eps_m=2 * H, rho=0.05))
+PARAMS = FusionParams(NoiseModel(eps=2 * H, rho=0.05))
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +37,7 @@ def room():
 
 
 def _grid(mode: str = "mapping", data=None) -> GridSpec:
-    bounds = data.bounds_m if mode == "closed" else None
+    bounds = data.bounds if mode == "closed" else None
     return GridSpec(H, 8, mode, bounds)
 
 
@@ -165,9 +165,9 @@ def test_store_errors(tmp_path, room):
             open_store(tmp_path / "s")
         with pytest.raises(SceneConflictError, match="already in the scene"):
             scene.store_scan(*room.scans[0])
-    with pytest.raises(SceneConflictError, match="voxel_size_m"):
+    with pytest.raises(SceneConflictError, match="voxel_size"):
         open_store(tmp_path / "s", GridSpec(2 * H, 8, "mapping"), PARAMS)
-    other = FusionParams(NoiseModel(eps_m=2 * H, rho=0.1))
+    other = FusionParams(NoiseModel(eps=2 * H, rho=0.1))
     with pytest.raises(SceneConflictError, match="rho"):
         open_store(tmp_path / "s", grid, other)
     marker = tmp_path / "s" / "rangefuse-store.json"
@@ -186,7 +186,7 @@ def test_recovery_rebuilds_journaled_tiles_and_drops_orphans(tmp_path, room):
         keys = scene.tile_keys()[:5]
         with scene.catalog.transaction():
             scene.catalog.journal_add(scene.scene_id, pack_keys(keys))
-        T = grid.tile_size_vox
+        T = grid.tile_size
         scene.tiles.write(keys, np.full((len(keys), T, T, T), 12345, np.int64))  # torn state
         scene.archive.put("ghost", room.scans[5][1])  # archived, never acknowledged
     with open_store(tmp_path / "s") as scene:
@@ -207,7 +207,7 @@ def test_an_interrupted_removal_is_finished_at_the_next_open(tmp_path, room):
         with scene.catalog.transaction():  # what remove() commits before touching tiles
             scene.catalog.set_scan_state(scene.scene_id, [victim], "removing")
             scene.catalog.journal_add(scene.scene_id, tiles)
-        T = grid.tile_size_vox
+        T = grid.tile_size
         half = unpack_keys(tiles[: len(tiles) // 2])
         scene.tiles.write(half, np.full((len(half), T, T, T), 7, np.int64))  # killed midway
     with open_store(tmp_path / "s") as scene:
@@ -274,7 +274,7 @@ def test_cli_store_commands(tmp_path, capsys):
     assert "no scan 'nope'" in capsys.readouterr().err
     assert main(["info", str(tmp_path / "nowhere")]) == 2
     assert main([*args[:3], str(2 * H), *args[4:], "--store", str(store)]) == 2
-    assert "voxel_size_m" in capsys.readouterr().err
+    assert "voxel_size" in capsys.readouterr().err
     assert main(["extract", str(store)]) == 2
 
 
@@ -338,3 +338,25 @@ def test_kill_at_random_instants_then_resume(tmp_path):
         assert done.returncode == 0, done.stderr
         _same_dense(read_grid(tmp_path / "g.npz"), expected)
     assert mid_run >= 3, (mid_run, full_s)  # the kills did interrupt work in progress
+
+
+def test_a_store_that_recorded_legacy_parameter_names_opens(tmp_path, room):
+    """Scenes recorded before the names were unified (``voxel_size_m``, ``eps_m`` ...)."""
+    import sqlite3
+
+    grid = _grid()
+    with open_store(tmp_path / "s", grid, PARAMS) as scene:
+        _fill(scene, room.scans[:2])
+        expected = scene.to_dense()
+    legacy_grid = {"voxel_size_m": H, "tile_size_vox": 8, "mode": "mapping", "bounds_m": None}
+    noise = {"eps_m": 2 * H, "eps_per_m": 0.0, "rho": 0.05, "falloff_m": None, "shape": "linear"}
+    legacy_params = {"noise": noise, "filter": "none", "max_discontinuity_m": None,
+                     "no_return": "free"}  # fmt: skip
+    db = sqlite3.connect(tmp_path / "s" / "catalog.sqlite")
+    with db:
+        db.execute("UPDATE scenes SET grid=?, params=?", (json.dumps(legacy_grid),
+                                                         json.dumps(legacy_params)))  # fmt: skip
+    db.close()
+    with open_store(tmp_path / "s", grid, PARAMS) as scene:  # the same parameters: no conflict
+        assert scene.grid == grid and scene.params == PARAMS
+        _same_dense(scene.to_dense(), expected)

@@ -64,7 +64,7 @@ def random_unit(rng: np.random.Generator, n: int) -> np.ndarray:
 
 def random_rays(name: str, data: SyntheticDataset, rng: np.random.Generator, n: int):
     scene = data.scene
-    lo, hi = np.array(data.bounds_m[:3]), np.array(data.bounds_m[3:])
+    lo, hi = np.array(data.bounds[:3]), np.array(data.bounds[3:])
     if name == "object":
         centre = 0.5 * (lo + hi)
         origins = centre + 1.2 * random_unit(rng, n)
@@ -348,7 +348,7 @@ def test_object_scene(datasets):
     extent = hi - lo
     assert 0.85 <= extent.max() <= 0.95
     np.testing.assert_allclose(0.5 * (lo + hi), 0.0, atol=0.05)  # centred near the origin
-    assert np.all(np.array(data.bounds_m[:3]) < lo) and np.all(np.array(data.bounds_m[3:]) > hi)
+    assert np.all(np.array(data.bounds[:3]) < lo) and np.all(np.array(data.bounds[3:]) > hi)
     # Twelve cameras 2 m from the centre, from above and from below, looking at it.
     default = make_dataset("object")
     assert len(default.scans) == 12
@@ -440,7 +440,7 @@ def test_street_scene(datasets):
     assert len(make_dataset("street").scans) == 20
     short = make_dataset("street", length_m=7.0)
     assert len(short.scans) == 4
-    assert short.bounds_m[3] > 7.0 and short.bounds_m[0] < 0.0
+    assert short.bounds[3] > 7.0 and short.bounds[0] < 0.0
 
 
 def test_street_scales_with_length():
@@ -448,7 +448,7 @@ def test_street_scales_with_length():
     large = make_dataset("street", views=1, length_m=1000.0)
     ratio = large.scene.n_solids / small.scene.n_solids
     assert 8.0 < ratio < 25.0  # linear in the length (1030 m / 80 m of ground)
-    assert large.bounds_m[3] > 1000.0
+    assert large.bounds[3] > 1000.0
     # The geometry depends on the length only.
     again = make_dataset("street", views=1, length_m=50.0, seed=7)
     np.testing.assert_array_equal(again.scene.boxes, small.scene.boxes)
