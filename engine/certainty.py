@@ -31,7 +31,7 @@ from numba import njit
 
 from .defaults import COUNT_BITS, LOGIT_SCALE
 from .errors import InvalidNoiseError
-from .params import current_names
+from .params import PARAMS, current_names, params_of
 
 __all__ = [
     "COUNT_MASK",
@@ -42,7 +42,7 @@ __all__ = [
     "pack",
 ]
 
-SHAPES = ("linear", "erf")
+SHAPES = PARAMS["shape"].choices
 SHAPE_LINEAR = 0
 SHAPE_ERF = 1
 COUNT_MASK = (1 << COUNT_BITS) - 1
@@ -69,45 +69,16 @@ class NoiseModel:
     """
 
     eps: float
-    eps_per_m: float = 0.0
-    rho: float = 0.05
+    eps_per_m: float = PARAMS["eps_per_m"].default
+    rho: float = PARAMS["rho"].default
     falloff: float | None = None
-    shape: str = "linear"
+    shape: str = PARAMS["shape"].default
 
     def __post_init__(self) -> None:
-        def number(name: str, value: Any) -> float:
-            if isinstance(value, bool):
-                raise InvalidNoiseError(name, f"must be a number, got {value!r}")
-            try:
-                out = float(value)
-            except (TypeError, ValueError):
-                raise InvalidNoiseError(name, f"must be a number, got {value!r}") from None
-            if not math.isfinite(out):
-                raise InvalidNoiseError(name, f"must be finite, got {value!r}")
-            return out
-
-        eps = number("eps", self.eps)
-        if eps <= 0.0:
-            raise InvalidNoiseError("eps", f"noise half-width must be > 0 metres, got {eps}")
-        eps1 = number("eps_per_m", self.eps_per_m)
-        if not 0.0 <= eps1 < 1.0:
-            raise InvalidNoiseError("eps_per_m", f"must be in [0, 1), got {eps1}")
-        rho = number("rho", self.rho)
-        if not 0.0 < rho < 0.5:
-            raise InvalidNoiseError("rho", f"outlier probability must be in (0, 1/2), got {rho}")
-        falloff = self.falloff
-        if falloff is not None:
-            falloff = number("falloff", falloff)
-            if falloff <= 0.0:
-                raise InvalidNoiseError("falloff", f"must be > 0 metres, got {falloff}")
-        if self.shape not in SHAPES:
-            raise InvalidNoiseError(
-                "shape", f"must be one of {', '.join(SHAPES)}, got {self.shape!r}"
-            )
-        object.__setattr__(self, "eps", eps)
-        object.__setattr__(self, "eps_per_m", eps1)
-        object.__setattr__(self, "rho", rho)
-        object.__setattr__(self, "falloff", falloff)
+        # each field as declared in engine/params.py
+        for param in params_of("noise"):
+            value = param.validate(getattr(self, param.name), InvalidNoiseError)
+            object.__setattr__(self, param.name, value)
 
     @property
     def shape_code(self) -> int:
@@ -142,7 +113,7 @@ class NoiseModel:
     @staticmethod
     def from_dict(data: dict[str, Any]) -> NoiseModel:
         data = current_names(data)
-        known = {"eps", "eps_per_m", "rho", "falloff", "shape"}
+        known = {p.name for p in params_of("noise")}
         unknown = sorted(set(data) - known)
         if unknown:
             raise InvalidNoiseError(unknown[0], f"unknown noise parameter (known: {sorted(known)})")

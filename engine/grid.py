@@ -9,27 +9,23 @@ centres lie inside the box.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numba import njit
 
-from .defaults import TILE_SIZE_VOX
 from .errors import InvalidGridError
-from .params import current_names
+from .params import PARAMS, current_names
 
 __all__ = ["MODES", "Bounds", "GridSpec", "pack_keys", "unique_keys", "unpack_keys"]
 
-MODES = ("mapping", "closed")
+MODES = PARAMS["mode"].choices
 #: Tile keys must lie within +-KEY_LIMIT of the origin (21 bits per axis in a packed key).
 KEY_LIMIT = 1 << 20
 
 Bounds = tuple[float, float, float, float, float, float]
 """A box ``(x0, y0, z0, x1, y1, z1)`` in metres."""
-_MIN_TILE_VOX = 4
-_MAX_TILE_VOX = 128
 
 
 @dataclass(frozen=True)
@@ -50,40 +46,17 @@ class GridSpec:
     """
 
     voxel_size: float
-    tile_size: int = TILE_SIZE_VOX
-    mode: str = "mapping"
+    tile_size: int = PARAMS["tile_size"].default
+    mode: str = PARAMS["mode"].default
     bounds: Bounds | None = None
 
     def __post_init__(self) -> None:
-        try:
-            h = float(self.voxel_size)
-        except (TypeError, ValueError):
-            raise InvalidGridError(
-                "voxel_size", f"must be a number, got {self.voxel_size!r}"
-            ) from None
-        if not (math.isfinite(h) and h > 0.0):
-            raise InvalidGridError("voxel_size", f"must be a positive number of metres, got {h}")
-        if h > 100.0:
-            raise InvalidGridError("voxel_size", f"{h} m is not a sensible voxel size")
-        object.__setattr__(self, "voxel_size", h)
-        t = self.tile_size
-        if isinstance(t, bool) or not isinstance(t, (int, np.integer)):
-            raise InvalidGridError("tile_size", f"must be an integer, got {t!r}")
-        if not _MIN_TILE_VOX <= t <= _MAX_TILE_VOX:
-            raise InvalidGridError(
-                "tile_size", f"must be between {_MIN_TILE_VOX} and {_MAX_TILE_VOX} voxels, got {t}"
-            )
-        object.__setattr__(self, "tile_size", int(t))
-        if self.mode not in MODES:
-            raise InvalidGridError("mode", f"must be one of {', '.join(MODES)}, got {self.mode!r}")
+        # each field as declared in engine/params.py; then the rules that join fields
+        for field in ("voxel_size", "tile_size", "mode", "bounds"):
+            value = PARAMS[field].validate(getattr(self, field), InvalidGridError)
+            object.__setattr__(self, field, value)
         if self.bounds is not None:
-            b = self.bounds
-            try:
-                values = tuple(float(x) for x in b)
-            except (TypeError, ValueError):
-                raise InvalidGridError("bounds", f"must be six numbers, got {b!r}") from None
-            if len(values) != 6 or not all(math.isfinite(x) for x in values):
-                raise InvalidGridError("bounds", f"must be six finite numbers, got {b!r}")
+            values = self.bounds
             for axis in range(3):
                 if values[axis] >= values[axis + 3]:
                     name = "xyz"[axis]
@@ -92,11 +65,10 @@ class GridSpec:
                         f"{name}0 must be less than {name}1, got {values[axis]} and "
                         f"{values[axis + 3]}",
                     )
-            object.__setattr__(self, "bounds", values)
             lo, hi = self.roi_voxels()
             if np.any(hi <= lo):
                 raise InvalidGridError(
-                    "bounds", f"the box holds no voxel centre at voxel size {h} m"
+                    "bounds", f"the box holds no voxel centre at voxel size {self.voxel_size} m"
                 )
         elif self.mode == "closed":
             raise InvalidGridError("bounds", "closed mode needs a region of interest")
@@ -135,8 +107,8 @@ class GridSpec:
         bounds = data.get("bounds")
         return GridSpec(
             voxel_size=data["voxel_size"],
-            tile_size=data.get("tile_size", TILE_SIZE_VOX),
-            mode=data.get("mode", "mapping"),
+            tile_size=data.get("tile_size", PARAMS["tile_size"].default),
+            mode=data.get("mode", PARAMS["mode"].default),
             bounds=None if bounds is None else tuple(bounds),
         )
 

@@ -12,7 +12,6 @@ the pose as ``p_S = M x_W + c``, and the quad-block maps of the tile tests.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,13 +21,13 @@ from . import _sampling
 from ._memory import Scratch
 from .certainty import NoiseModel
 from .errors import InvalidInputError, InvalidScanError
-from .filters import FILTERS, filter_range
-from .params import current_names
+from .filters import filter_range
+from .params import PARAMS, current_names, params_of
 from .sensors import Sensor
 
 __all__ = ["NO_RETURN", "FusionParams", "PreparedScan", "Scan", "check_pose", "prepare_scan"]
 
-NO_RETURN = ("free", "invalid")
+NO_RETURN = PARAMS["no_return"].choices
 #: Largest deviation of ``R^T R`` from the identity accepted in a pose.
 _ROTATION_TOLERANCE = 1e-5
 
@@ -152,34 +151,18 @@ class FusionParams:
     """
 
     noise: NoiseModel
-    filter: str = "none"
+    filter: str = PARAMS["filter"].default
     max_discontinuity: float | None = None
-    no_return: str = "free"
+    no_return: str = PARAMS["no_return"].default
 
     def __post_init__(self) -> None:
         if not isinstance(self.noise, NoiseModel):
             raise InvalidInputError(
                 "noise", f"must be a NoiseModel, got {type(self.noise).__name__}"
             )
-        if self.filter not in FILTERS:
-            raise InvalidInputError(
-                "filter", f"must be one of {', '.join(FILTERS)}, got {self.filter!r}"
-            )
-        if self.no_return not in NO_RETURN:
-            raise InvalidInputError(
-                "no_return", f"must be one of {', '.join(NO_RETURN)}, got {self.no_return!r}"
-            )
-        if self.max_discontinuity is not None:
-            value = self.max_discontinuity
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, float))
-                or not (math.isfinite(value) and value > 0.0)
-            ):
-                raise InvalidInputError(
-                    "max_discontinuity", f"must be a positive number of metres, got {value!r}"
-                )
-            object.__setattr__(self, "max_discontinuity", float(value))
+        # each field as declared in engine/params.py
+        for param in params_of("fusion"):
+            object.__setattr__(self, param.name, param.validate(getattr(self, param.name)))
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -194,9 +177,9 @@ class FusionParams:
         data = current_names(data)
         return FusionParams(
             noise=NoiseModel.from_dict(data["noise"]),
-            filter=data.get("filter", "none"),
+            filter=data.get("filter", PARAMS["filter"].default),
             max_discontinuity=data.get("max_discontinuity"),
-            no_return=data.get("no_return", "free"),
+            no_return=data.get("no_return", PARAMS["no_return"].default),
         )
 
 
