@@ -31,14 +31,15 @@ def _settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
 def _cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from .app import create_app, create_token
+    from .accounts import Accounts
+    from .app import create_app
 
     settings = _settings(args)
     os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(settings.data_dir) / ".numba_cache"))
     app = create_app(settings)  # creates the store when missing
-    with Store.open(settings.data_dir) as store:
-        if store.catalog.n_tokens() == 0:
-            token = create_token(store, "default")
+    with Store.open(settings.data_dir) as store, Accounts(store.catalog.path) as accounts:
+        if accounts.n_tokens() == 0:
+            token = accounts.create_token("default")
             print(f"first start: created a token for tenant 'default': {token}", flush=True)
             print("  use it as: Authorization: Bearer TOKEN", flush=True)
     uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
@@ -46,11 +47,14 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _cmd_token(args: argparse.Namespace) -> int:
-    from .app import create_token
+    from .accounts import Accounts
 
     settings = _settings(args)
-    with Store.open(settings.data_dir, create=True) as store:
-        print(create_token(store, args.tenant))
+    with (
+        Store.open(settings.data_dir, create=True) as store,
+        Accounts(store.catalog.path) as accounts,
+    ):
+        print(accounts.create_token(args.tenant))
     return 0
 
 

@@ -8,9 +8,7 @@ that worker processes run (:mod:`service.jobs`). Every bad input is answered wit
 
 from __future__ import annotations
 
-import hashlib
 import math
-import secrets
 import threading
 from collections.abc import AsyncIterator, Iterator
 from contextlib import asynccontextmanager
@@ -34,22 +32,13 @@ from rangefuse.storage.meshes import mesh_bytes
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from .accounts import Accounts
 from .jobs import Dispatcher, new_id
+from .queue import JobQueue
 from .settings import Settings
 from .uploads import UploadError, decode_scan
 
-__all__ = ["create_app", "create_token", "hash_token"]
-
-
-def hash_token(token: str) -> str:
-    return hashlib.sha256(token.encode()).hexdigest()
-
-
-def create_token(store: Store, tenant: str) -> str:
-    """A new bearer token for ``tenant`` (only its hash is stored)."""
-    token = secrets.token_urlsafe(32)
-    store.catalog.add_token(hash_token(token), tenant)
-    return token
+__all__ = ["create_app"]
 
 
 # --- request bodies ---------------------------------------------------------------------------
@@ -150,7 +139,7 @@ def _tenant(request: Request, authorization: Annotated[str | None, Header()] = N
     """The tenant of the request's bearer token (401 without a valid one)."""
     if not authorization or not authorization.startswith("Bearer "):
         raise HTTPException(401, "missing bearer token (Authorization: Bearer TOKEN)")
-    found = request.app.state.store().catalog.token_tenant(hash_token(authorization[7:].strip()))
+    found = request.app.state.accounts.tenant(authorization[7:].strip())
     if found is None:
         raise HTTPException(401, "invalid token")
     return str(found)
@@ -162,7 +151,10 @@ Tenant = Annotated[str, Depends(_tenant)]
 def create_app(settings: Settings) -> FastAPI:
     """The service over ``settings.data_dir`` (a store, created when missing)."""
     data_dir = Path(settings.data_dir)
-    Store.open(data_dir, create=True).close()
+    with Store.open(data_dir, create=True) as s:
+        db_path = s.catalog.path  # the service's tables live in the catalog's file
+    accounts = Accounts(db_path)
+    queue = JobQueue(db_path)
     local = threading.local()
     upload_lock = threading.Lock()
 
@@ -264,16 +256,17 @@ def create_app(settings: Settings) -> FastAPI:
     @app.get("/metrics", response_class=Response)
     def metrics(who: Tenant) -> Response:
         counts = store().catalog.counts()
+        job_counts = queue.counts()
         lines = ["# TYPE rangefuse_scans gauge"]
         for state in ("stored", "fused", "removing"):
             lines.append(f'rangefuse_scans{{state="{state}"}} {counts["scans"].get(state, 0)}')
         lines += ["# TYPE rangefuse_tiles gauge", f"rangefuse_tiles {counts['tiles']}"]
         lines.append("# TYPE rangefuse_jobs gauge")
         for state in ("queued", "running", "done", "failed"):
-            lines.append(f'rangefuse_jobs{{state="{state}"}} {counts["jobs"].get(state, 0)}')
+            lines.append(f'rangefuse_jobs{{state="{state}"}} {job_counts.get(state, 0)}')
         updates = 0.0
         seconds = 0.0
-        for job in store().catalog.jobs(("done",)):
+        for job in queue.jobs(("done",)):
             if job.kind == "integrate" and job.result:
                 updates += float(job.result.get("voxel_updates", 0))
                 seconds += float(job.result.get("seconds", 0.0))
@@ -336,6 +329,7 @@ def create_app(settings: Settings) -> FastAPI:
     def delete_scene(scene_id: str, who: Tenant) -> Response:
         scene_row(scene_id, who)
         store().delete_scene(scene_id)
+        queue.forget_scene(scene_id)
         return Response(status_code=204)
 
     # --- scans --------------------------------------------------------------------------------
@@ -381,18 +375,18 @@ def create_app(settings: Settings) -> FastAPI:
         def store_it() -> dict[str, Any]:
             with upload_lock:  # idempotency: one retry at a time
                 if idempotency_key is not None:
-                    seen = store().catalog.idempotent_response(who, idempotency_key)
+                    seen = accounts.idempotent_response(who, idempotency_key)
                     if seen is not None:
                         return seen
                 scan_id = new_id()
                 row = store().store_scan(scene_id, scan_id, uploaded.scan, uploaded.name)
-                job = store().catalog.queued_job(scene_id, "integrate")
+                job = queue.queued_job(scene_id, "integrate")
                 if job is None:
-                    job = store().catalog.create_job(new_id(), who, scene_id, "integrate", {})
+                    job = queue.create_job(new_id(), who, scene_id, "integrate", {})
                 response = {"scan": {"id": row.id, "name": row.name, "state": row.state},
                             "job": {"id": job.id}}  # fmt: skip
                 if idempotency_key is not None:
-                    store().catalog.remember_response(who, idempotency_key, response)
+                    accounts.remember_response(who, idempotency_key, response)
                 return response
 
         response = await run_in_threadpool(store_it)
@@ -417,7 +411,7 @@ def create_app(settings: Settings) -> FastAPI:
         scene_row(scene_id, who)
         if store().catalog.scan(scene_id, scan_id) is None:
             raise HTTPException(404, f"no scan {scan_id!r} in scene {scene_id!r}")
-        job = store().catalog.create_job(new_id(), who, scene_id, "remove", {"scan_id": scan_id})
+        job = queue.create_job(new_id(), who, scene_id, "remove", {"scan_id": scan_id})
         dispatcher.wake()
         return {"job": {"id": job.id}}
 
@@ -434,7 +428,7 @@ def create_app(settings: Settings) -> FastAPI:
             grid, _ = store().scene_spec(scene_id)
             GridSpec(grid.voxel_size, grid.tile_size, "mapping", tuple(body.bounds))  # type: ignore[arg-type]
         payload = {"bounds": body.bounds, "refine": body.refine}
-        job = store().catalog.create_job(new_id(), who, scene_id, "reconstruct", payload)
+        job = queue.create_job(new_id(), who, scene_id, "reconstruct", payload)
         dispatcher.wake()
         return {"job": {"id": job.id}}
 
@@ -443,12 +437,12 @@ def create_app(settings: Settings) -> FastAPI:
         who: Tenant, limit: Annotated[int, Query(ge=1, le=1000)] = 50
     ) -> list[dict[str, Any]]:
         """The tenant's most recent jobs, newest first."""
-        jobs = store().catalog.jobs(tenant=who)
+        jobs = queue.jobs(tenant=who)
         return [job_out(j) for j in reversed(jobs[-limit:])]
 
     @app.get("/v1/jobs/{job_id}")
     def get_job(job_id: str, who: Tenant) -> dict[str, Any]:
-        job = store().catalog.job(job_id)
+        job = queue.job(job_id)
         if job is None or job.tenant != who:
             raise HTTPException(404, f"no job {job_id!r}")
         return job_out(job)
@@ -461,7 +455,7 @@ def create_app(settings: Settings) -> FastAPI:
         if_none_match: Annotated[str | None, Header()] = None,
     ) -> Response:
         scene_row(scene_id, who)
-        found = store().catalog.mesh(scene_id)
+        found = queue.mesh(scene_id)
         if found is None:
             raise HTTPException(409, "no reconstruction yet: POST /v1/scenes/{id}/reconstructions")
         path, etag, _ = found
@@ -505,6 +499,7 @@ def create_app(settings: Settings) -> FastAPI:
         return Response(png, media_type="image/png")
 
     app.state.store = store
+    app.state.accounts = accounts
     app.add_middleware(BodyLimit, limit=int(settings.max_upload_mb * 2**20))
     return app
 

@@ -1,11 +1,11 @@
-"""Jobs: persisted in the catalog, run in spawned worker processes, resumed after a restart.
+"""Jobs: persisted in the job queue, run in spawned worker processes, resumed after a restart.
 
-The API process only queues jobs. A :class:`Dispatcher` thread claims queued jobs (one at a
-time per scene) and runs :func:`run_job` on a pool of worker processes started with
-``spawn``; each job opens its scene for writing (waiting for the scene's writer lock),
-does the work and records the outcome. A service killed mid-job leaves the job
-``running``; the next start puts it back in the queue, and since fusion and extraction are
-exact and idempotent the job completes with the same result.
+The API process only queues jobs (:mod:`service.queue`). A :class:`Dispatcher` thread
+claims queued jobs (one at a time per scene) and runs :func:`run_job` on a pool of worker
+processes started with ``spawn``; each job opens its scene for writing (waiting for the
+scene's writer lock), does the work and records the outcome. A service killed mid-job
+leaves the job ``running``; the next start puts it back in the queue, and since fusion and
+extraction are exact and idempotent the job completes with the same result.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 from rangefuse.storage import Store
-from rangefuse.storage.catalog import JobRow
 
+from .queue import JobQueue, JobRow
 from .runners import spawn_pool
 
 __all__ = ["Dispatcher", "new_id", "run_job"]
@@ -44,20 +44,19 @@ def run_job(data_dir: str, job_id: str, cache_mb: float) -> dict[str, Any]:
     """Run one job to completion (in a worker process); returns its result."""
     from rangefuse.storage._files import atomic_write
 
-    with Store.open(data_dir) as store:
-        catalog = store.catalog
-        job = catalog.job(job_id)
+    with Store.open(data_dir) as store, JobQueue(store.catalog.path) as queue:
+        job = queue.job(job_id)
         if job is None or job.scene_id is None:
             return {}
-        if catalog.scene(job.scene_id) is None:
-            catalog.update_job(job_id, state="failed", error="the scene was deleted")
+        if store.catalog.scene(job.scene_id) is None:
+            queue.update_job(job_id, state="failed", error="the scene was deleted")
             return {}
         t0 = time.perf_counter()
         try:
             with store.open_scene(job.scene_id, cache_mb, wait=True) as scene:
 
                 def progress(done: int, total: int) -> None:
-                    catalog.update_job(job_id, progress=done / max(total, 1))
+                    queue.update_job(job_id, progress=done / max(total, 1))
 
                 result: dict[str, Any]
                 if job.kind == "integrate":
@@ -96,18 +95,18 @@ def run_job(data_dir: str, job_id: str, cache_mb: float) -> dict[str, Any]:
                         ),
                         fsync=True,
                     )
-                    catalog.set_mesh(
+                    queue.set_mesh(
                         job.scene_id, job_id, str(path), digest.hexdigest()[:32], mesh.n_faces
                     )
                     result = {"faces": mesh.n_faces, "vertices": mesh.n_vertices, **counts}
                 else:
                     raise ValueError(f"unknown job kind {job.kind!r}")
             result["seconds"] = time.perf_counter() - t0
-            catalog.update_job(job_id, state="done", progress=1.0, result=result)
+            queue.update_job(job_id, state="done", progress=1.0, result=result)
             return result
         except Exception as exc:  # a job's failure is recorded, never raised into the pool
             log.exception("job %s failed", job_id)
-            catalog.update_job(job_id, state="failed", error=f"{type(exc).__name__}: {exc}")
+            queue.update_job(job_id, state="failed", error=f"{type(exc).__name__}: {exc}")
             return {}
 
 
@@ -126,8 +125,8 @@ class Dispatcher:
         self._thread = threading.Thread(target=self._loop, name="rangefuse-dispatcher", daemon=True)
 
     def start(self) -> None:
-        with Store.open(self.data_dir) as store:
-            resumed = store.catalog.requeue_running()
+        with Store.open(self.data_dir) as store, JobQueue(store.catalog.path) as queue:
+            resumed = queue.requeue_running()
         if resumed:
             log.info("resuming %d interrupted jobs", resumed)
         self._thread.start()
@@ -142,19 +141,19 @@ class Dispatcher:
         self._pool.shutdown(wait=False, cancel_futures=True)
 
     def _loop(self) -> None:
-        store = Store.open(self.data_dir)
+        with Store.open(self.data_dir) as store:
+            path = store.catalog.path
+        queue = JobQueue(path)
         try:
             while not self._stop.is_set():
                 for fut in [f for f in self._running if f.done()]:
                     job = self._running.pop(fut)
                     exc = fut.exception()
                     if exc is not None:  # the worker process died
-                        store.catalog.update_job(
-                            job.id, state="failed", error=f"worker failed: {exc}"
-                        )
+                        queue.update_job(job.id, state="failed", error=f"worker failed: {exc}")
                 while len(self._running) < self.workers:
                     busy = [j.scene_id for j in self._running.values() if j.scene_id]
-                    claimed = store.catalog.claim_job(busy)
+                    claimed = queue.claim_job(busy)
                     if claimed is None:
                         break
                     fut = self._pool.submit(run_job, str(self.data_dir), claimed.id, self.cache_mb)
@@ -162,4 +161,4 @@ class Dispatcher:
                 self._wake.wait(self.poll_s)
                 self._wake.clear()
         finally:
-            store.close()
+            queue.close()

@@ -1,8 +1,10 @@
-"""The catalog: scenes, scans, which scans inform which tiles, the tile journal, jobs.
+"""The catalog: scenes, scans, which scans inform which tiles, tile journal, epochs, mesh cache.
 
 One SQLite file per store (``docs/storage.md``), opened in WAL mode with
 ``synchronous=FULL``: a committed transaction survives a kill -9 and a power loss. Tiles
-are identified by their packed key (:func:`engine.grid.pack_keys`).
+are identified by their packed key (:func:`engine.grid.pack_keys`). The service keeps its
+own tables (tokens, idempotency keys, jobs, meshes of reconstructions) in the same file,
+through its own connection (``service/accounts.py``, ``service/queue.py``).
 """
 
 from __future__ import annotations
@@ -20,10 +22,8 @@ import numpy as np
 
 __all__ = [
     "CATALOG_VERSION",
-    "JOB_STATES",
     "Catalog",
     "CatalogError",
-    "JobRow",
     "ScanRow",
     "SceneRow",
 ]
@@ -47,6 +47,7 @@ CREATE TABLE IF NOT EXISTS tile_scans(
 CREATE INDEX IF NOT EXISTS tile_scans_scan ON tile_scans(scene_id, scan_id);
 CREATE TABLE IF NOT EXISTS journal(
     scene_id TEXT NOT NULL, tile INTEGER NOT NULL, PRIMARY KEY(scene_id, tile)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS publishing(scene_id TEXT PRIMARY KEY);
 CREATE TABLE IF NOT EXISTS tile_epochs(
     scene_id TEXT NOT NULL, tile INTEGER NOT NULL, epoch INTEGER NOT NULL,
     PRIMARY KEY(scene_id, tile)) WITHOUT ROWID;
@@ -54,56 +55,7 @@ CREATE TABLE IF NOT EXISTS mesh_cache(
     scene_id TEXT NOT NULL, tile INTEGER NOT NULL, options TEXT NOT NULL,
     epoch INTEGER NOT NULL, data BLOB NOT NULL,
     PRIMARY KEY(scene_id, tile, options)) WITHOUT ROWID;
-CREATE TABLE IF NOT EXISTS jobs(
-    id TEXT PRIMARY KEY, seq INTEGER NOT NULL, tenant TEXT NOT NULL, scene_id TEXT,
-    kind TEXT NOT NULL, state TEXT NOT NULL, progress REAL NOT NULL, error TEXT,
-    payload TEXT NOT NULL, result TEXT, created_at REAL NOT NULL, finished_at REAL);
-CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state, seq);
-CREATE TABLE IF NOT EXISTS tokens(
-    hash TEXT PRIMARY KEY, tenant TEXT NOT NULL, created_at REAL NOT NULL);
-CREATE TABLE IF NOT EXISTS idempotency(
-    tenant TEXT NOT NULL, key TEXT NOT NULL, response TEXT NOT NULL,
-    PRIMARY KEY(tenant, key));
-CREATE TABLE IF NOT EXISTS meshes(
-    scene_id TEXT PRIMARY KEY, job_id TEXT NOT NULL, path TEXT NOT NULL, etag TEXT NOT NULL,
-    faces INTEGER NOT NULL, created_at REAL NOT NULL);
 """
-
-#: States of a job.
-JOB_STATES = ("queued", "running", "done", "failed")
-
-
-@dataclass(frozen=True)
-class JobRow:
-    id: str
-    tenant: str
-    scene_id: str | None
-    kind: str
-    state: str
-    progress: float
-    error: str | None
-    payload: dict[str, Any]
-    result: dict[str, Any] | None
-    created_at: float
-    finished_at: float | None
-
-    def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {
-            "id": self.id,
-            "kind": self.kind,
-            "scene_id": self.scene_id,
-            "state": self.state,
-            "progress": self.progress,
-            "created_at": self.created_at,
-        }
-        if self.error is not None:
-            out["error"] = self.error
-        if self.finished_at is not None:
-            out["finished_at"] = self.finished_at
-        if self.result is not None:
-            out["result"] = self.result
-        return out
-
 
 #: States of a scan: archived and acknowledged; fused into the tiles; being removed.
 SCAN_STATES = ("stored", "fused", "removing")
@@ -220,7 +172,8 @@ class Catalog:
 
     def delete_scene(self, scene_id: str) -> None:
         with self.transaction():
-            for table in ("scans", "tile_scans", "journal", "tile_epochs", "mesh_cache", "meshes"):
+            for table in ("scans", "tile_scans", "journal", "publishing", "tile_epochs",
+                          "mesh_cache"):  # fmt: skip
                 self._db.execute(f"DELETE FROM {table} WHERE scene_id=?", (scene_id,))
             self._db.execute("DELETE FROM scenes WHERE id=?", (scene_id,))
 
@@ -348,14 +301,44 @@ class Catalog:
             "DELETE FROM tile_scans WHERE scene_id=? AND scan_id=?", (scene_id, scan_id)
         )
 
-    # --- journal and epochs -------------------------------------------------------------------
-    def journal_add(self, scene_id: str, tiles: np.ndarray) -> None:
+    def set_tile_owners(
+        self, scene_id: str, tiles: np.ndarray, owners: Sequence[frozenset[str]]
+    ) -> None:
+        """Make ``owners[n]`` the owners of tile ``tiles[n]`` (packed keys); other scans that
+        owned it keep a row as informing scans."""
+        for tile, own in zip(_packed(tiles), owners, strict=True):
+            self._db.execute(
+                "UPDATE tile_scans SET owner=0 WHERE scene_id=? AND tile=?", (scene_id, tile)
+            )
+            self._db.executemany(
+                "INSERT INTO tile_scans(scene_id, tile, scan_id, owner) VALUES(?,?,?,1) "
+                "ON CONFLICT(scene_id, tile, scan_id) DO UPDATE SET owner=1",
+                [(scene_id, tile, scan_id) for scan_id in sorted(own)],
+            )
+
+    def delete_tiles(self, scene_id: str, tiles: np.ndarray) -> None:
+        """Forget tiles (packed keys): every row of their owners and informing scans."""
         self._db.executemany(
-            "INSERT OR IGNORE INTO journal(scene_id, tile) VALUES(?,?)",
+            "DELETE FROM tile_scans WHERE scene_id=? AND tile=?",
             [(scene_id, t) for t in _packed(tiles)],
         )
 
+    # --- journal and epochs -------------------------------------------------------------------
+    def set_publishing(self, scene_id: str, publishing: bool) -> None:
+        """Mark (or clear) that the scene's staged chunks belong to a committed checkpoint
+        and are to be published (docs/storage.md)."""
+        if publishing:
+            self._db.execute("INSERT OR IGNORE INTO publishing(scene_id) VALUES(?)", (scene_id,))
+        else:
+            self._db.execute("DELETE FROM publishing WHERE scene_id=?", (scene_id,))
+
+    def publishing(self, scene_id: str) -> bool:
+        row = self._db.execute("SELECT 1 FROM publishing WHERE scene_id=?", (scene_id,)).fetchone()
+        return row is not None
+
     def journal(self, scene_id: str) -> np.ndarray:
+        """Tiles a version-1 store had in flight when it was killed (that layout wrote tiles
+        in place and journaled them first; the scene rebuilds them at its next open)."""
         rows = self._db.execute(
             "SELECT tile FROM journal WHERE scene_id=? ORDER BY tile", (scene_id,)
         ).fetchall()
@@ -408,161 +391,17 @@ class Catalog:
                 [(scene_id, int(t), options, int(e), d) for t, e, d in entries],
             )
 
-    # --- jobs ---------------------------------------------------------------------------------
-    _JOB_COLUMNS = (
-        "id, tenant, scene_id, kind, state, progress, error, payload, result, created_at, "
-        "finished_at"
-    )
-
-    @staticmethod
-    def _job_row(r: tuple[Any, ...]) -> JobRow:
-        return JobRow(
-            r[0], r[1], r[2], r[3], r[4], r[5], r[6], json.loads(r[7]),
-            None if r[8] is None else json.loads(r[8]), r[9], r[10],
-        )  # fmt: skip
-
-    def create_job(
-        self, job_id: str, tenant: str, scene_id: str | None, kind: str, payload: dict[str, Any]
-    ) -> JobRow:
-        with self.transaction():
-            seq = int(self._db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM jobs").fetchone()[0])
-            self._db.execute(
-                "INSERT INTO jobs(id, seq, tenant, scene_id, kind, state, progress, payload,"
-                " created_at) VALUES(?,?,?,?,?,'queued',0,?,?)",
-                (job_id, seq, tenant, scene_id, kind, json.dumps(payload), time.time()),
-            )
-        job = self.job(job_id)
-        assert job is not None
-        return job
-
-    def job(self, job_id: str) -> JobRow | None:
-        row = self._db.execute(
-            f"SELECT {self._JOB_COLUMNS} FROM jobs WHERE id=?", (job_id,)
-        ).fetchone()
-        return None if row is None else self._job_row(row)
-
-    def jobs(self, states: Sequence[str] | None = None, tenant: str | None = None) -> list[JobRow]:
-        rows = self._db.execute(f"SELECT {self._JOB_COLUMNS} FROM jobs ORDER BY seq")
-        out = [self._job_row(r) for r in rows]
-        return [
-            j
-            for j in out
-            if (states is None or j.state in states) and (tenant is None or j.tenant == tenant)
-        ]
-
-    def queued_job(self, scene_id: str, kind: str) -> JobRow | None:
-        """A queued job of this kind for the scene, if any (to fold new work into it)."""
-        row = self._db.execute(
-            f"SELECT {self._JOB_COLUMNS} FROM jobs WHERE scene_id=? AND kind=? AND "
-            "state='queued' ORDER BY seq LIMIT 1",
-            (scene_id, kind),
-        ).fetchone()
-        return None if row is None else self._job_row(row)
-
-    def claim_job(self, busy_scenes: Sequence[str]) -> JobRow | None:
-        """The oldest queued job of a scene with no running job, now marked running."""
-        with self.transaction():
-            running = {
-                r[0] for r in self._db.execute("SELECT scene_id FROM jobs WHERE state='running'")
-            }
-            running |= set(busy_scenes)
-            for r in self._db.execute(
-                f"SELECT {self._JOB_COLUMNS} FROM jobs WHERE state='queued' ORDER BY seq"
-            ).fetchall():
-                job = self._job_row(r)
-                if job.scene_id in running:
-                    continue
-                self._db.execute("UPDATE jobs SET state='running' WHERE id=?", (job.id,))
-                return self.job(job.id)
-        return None
-
-    def update_job(
-        self,
-        job_id: str,
-        *,
-        state: str | None = None,
-        progress: float | None = None,
-        error: str | None = None,
-        result: dict[str, Any] | None = None,
-    ) -> None:
-        sets: list[str] = []
-        args: list[Any] = []
-        if state is not None:
-            if state not in JOB_STATES:
-                raise ValueError(f"unknown job state {state!r}")
-            sets.append("state=?")
-            args.append(state)
-            if state in ("done", "failed"):
-                sets.append("finished_at=?")
-                args.append(time.time())
-        if progress is not None:
-            sets.append("progress=?")
-            args.append(float(progress))
-        if error is not None:
-            sets.append("error=?")
-            args.append(error)
-        if result is not None:
-            sets.append("result=?")
-            args.append(json.dumps(result))
-        if sets:
-            self._db.execute(f"UPDATE jobs SET {', '.join(sets)} WHERE id=?", (*args, job_id))
-
-    def requeue_running(self) -> int:
-        """Jobs a dead process left running go back to the queue (restart)."""
-        cur = self._db.execute("UPDATE jobs SET state='queued' WHERE state='running'")
-        return int(cur.rowcount)
-
-    # --- tokens, idempotency, meshes -----------------------------------------------------------
-    def add_token(self, token_hash: str, tenant: str) -> None:
-        self._db.execute(
-            "INSERT INTO tokens(hash, tenant, created_at) VALUES(?,?,?)",
-            (token_hash, tenant, time.time()),
-        )
-
-    def token_tenant(self, token_hash: str) -> str | None:
-        row = self._db.execute("SELECT tenant FROM tokens WHERE hash=?", (token_hash,)).fetchone()
-        return None if row is None else str(row[0])
-
-    def n_tokens(self) -> int:
-        return int(self._db.execute("SELECT COUNT(*) FROM tokens").fetchone()[0])
-
-    def idempotent_response(self, tenant: str, key: str) -> dict[str, Any] | None:
-        row = self._db.execute(
-            "SELECT response FROM idempotency WHERE tenant=? AND key=?", (tenant, key)
-        ).fetchone()
-        return None if row is None else json.loads(row[0])
-
-    def remember_response(self, tenant: str, key: str, response: dict[str, Any]) -> None:
-        self._db.execute(
-            "INSERT OR IGNORE INTO idempotency(tenant, key, response) VALUES(?,?,?)",
-            (tenant, key, json.dumps(response)),
-        )
-
-    def set_mesh(self, scene_id: str, job_id: str, path: str, etag: str, faces: int) -> None:
-        self._db.execute(
-            "INSERT OR REPLACE INTO meshes(scene_id, job_id, path, etag, faces, created_at) "
-            "VALUES(?,?,?,?,?,?)",
-            (scene_id, job_id, path, etag, faces, time.time()),
-        )
-
-    def mesh(self, scene_id: str) -> tuple[str, str, int] | None:
-        row = self._db.execute(
-            "SELECT path, etag, faces FROM meshes WHERE scene_id=?", (scene_id,)
-        ).fetchone()
-        return None if row is None else (str(row[0]), str(row[1]), int(row[2]))
-
+    # --- sizes --------------------------------------------------------------------------------
     def counts(self) -> dict[str, Any]:
-        """For metrics: scans by state, tiles, jobs by state."""
+        """For metrics: scans by state, tiles."""
         scans = dict(
             self._db.execute("SELECT state, COUNT(*) FROM scans GROUP BY state").fetchall()
         )
-        jobs = dict(self._db.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state").fetchall())
         tiles = self._db.execute(
             "SELECT COUNT(*) FROM (SELECT DISTINCT scene_id, tile FROM tile_scans WHERE owner=1)"
         ).fetchone()[0]
-        return {"scans": scans, "jobs": jobs, "tiles": int(tiles)}
+        return {"scans": scans, "tiles": int(tiles)}
 
-    # --- sizes --------------------------------------------------------------------------------
     def count(self, table: str, scene_id: str) -> int:
         if table not in ("scans", "tile_scans", "journal", "mesh_cache"):
             raise ValueError(table)
