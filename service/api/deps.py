@@ -1,0 +1,136 @@
+"""Dependencies of the routes: the service's parts, the caller's tenant, the caller's scene.
+
+Routes declare what they need with the ``Annotated`` aliases below (``StoreDep``,
+``CurrentTenant``, ``TenantScene`` ...), as in the FastAPI full-stack template's
+``api/deps.py``. :class:`Services` is built once by ``create_app`` and kept in
+``app.state``.
+
+A :class:`~storage.Store` holds an SQLite connection that only the thread that opened it
+may use, and FastAPI runs each synchronous dependency and route in any thread of its pool;
+so ``StoreDep`` is a function that returns *this thread's* store (opened on first use), to
+be called where it is used: ``store().catalog.scene(...)``. The accounts and the job queue
+are shared by all threads (:mod:`service._database`).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+from fastapi import Depends, Header, HTTPException, Request
+from rangefuse.storage import Store
+from rangefuse.storage.catalog import SceneRow
+
+from ..accounts import Accounts
+from ..jobs import Dispatcher
+from ..queue import JobQueue
+from ..settings import Settings
+
+__all__ = [
+    "AccountsDep",
+    "CurrentTenant",
+    "DispatcherDep",
+    "QueueDep",
+    "Services",
+    "SettingsDep",
+    "StoreDep",
+    "TenantScene",
+    "UploadLockDep",
+]
+
+StoreOpener = Callable[[], Store]
+
+
+class ThreadStores:
+    """One open :class:`Store` per thread (``__call__`` returns the calling thread's)."""
+
+    def __init__(self, data_dir: Path) -> None:
+        self.data_dir = data_dir
+        self._local = threading.local()
+
+    def __call__(self) -> Store:
+        store = getattr(self._local, "store", None)
+        if store is None:
+            store = Store.open(self.data_dir)
+            self._local.store = store
+        return store
+
+
+@dataclass
+class Services:
+    """What the routes share: settings, stores, accounts, the job queue and its dispatcher."""
+
+    settings: Settings
+    store: ThreadStores
+    accounts: Accounts
+    queue: JobQueue
+    dispatcher: Dispatcher
+    #: Uploads with an idempotency key are stored one at a time (a retry waits for the first).
+    upload_lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+def _services(request: Request) -> Services:
+    services: Services = request.app.state.services
+    return services
+
+
+def get_settings(request: Request) -> Settings:
+    return _services(request).settings
+
+
+def get_store(request: Request) -> StoreOpener:
+    return _services(request).store
+
+
+def get_accounts(request: Request) -> Accounts:
+    return _services(request).accounts
+
+
+def get_queue(request: Request) -> JobQueue:
+    return _services(request).queue
+
+
+def get_dispatcher(request: Request) -> Dispatcher:
+    return _services(request).dispatcher
+
+
+def get_upload_lock(request: Request) -> threading.Lock:
+    return _services(request).upload_lock
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+StoreDep = Annotated[StoreOpener, Depends(get_store)]
+AccountsDep = Annotated[Accounts, Depends(get_accounts)]
+QueueDep = Annotated[JobQueue, Depends(get_queue)]
+DispatcherDep = Annotated[Dispatcher, Depends(get_dispatcher)]
+UploadLockDep = Annotated[threading.Lock, Depends(get_upload_lock)]
+
+
+def current_tenant(
+    accounts: AccountsDep, authorization: Annotated[str | None, Header()] = None
+) -> str:
+    """The tenant of the request's bearer token (401 without a valid one)."""
+    if not authorization or not authorization.startswith("Bearer "):
+        raise HTTPException(401, "missing bearer token (Authorization: Bearer TOKEN)")
+    found = accounts.tenant(authorization[7:].strip())
+    if found is None:
+        raise HTTPException(401, "invalid token")
+    return found
+
+
+CurrentTenant = Annotated[str, Depends(current_tenant)]
+
+
+def tenant_scene(scene_id: str, who: CurrentTenant, store: StoreDep) -> SceneRow:
+    """The scene ``scene_id`` of the path; 404 when it does not exist or is another tenant's
+    (the two look the same)."""
+    row = store().catalog.scene(scene_id)
+    if row is None or row.tenant != who:
+        raise HTTPException(404, f"no scene {scene_id!r}")
+    return row
+
+
+TenantScene = Annotated[SceneRow, Depends(tenant_scene)]

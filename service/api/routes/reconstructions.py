@@ -1,0 +1,87 @@
+"""Reconstructions of a scene: ask for one (a job), download the latest mesh."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Annotated, Literal
+
+import numpy as np
+from fastapi import APIRouter, Header, HTTPException, Query, Response
+from fastapi.responses import StreamingResponse
+from rangefuse.engine import GridSpec
+from rangefuse.engine.meshing import Mesh
+from rangefuse.storage.meshes import mesh_bytes
+
+from ...jobs import new_id
+from ..deps import CurrentTenant, DispatcherDep, QueueDep, TenantScene
+from ..models import Accepted, ReconstructionIn, problems
+
+__all__ = ["router"]
+
+router = APIRouter(
+    prefix="/v1/scenes/{scene_id}", tags=["reconstructions"], responses=problems(401, 404, 422)
+)
+
+_MEDIA = {"ply": "application/octet-stream", "obj": "text/plain", "glb": "model/gltf-binary",
+          "stl": "model/stl"}  # fmt: skip
+
+
+@router.post("/reconstructions", status_code=202, response_model=Accepted)
+def reconstruct(
+    scene: TenantScene,
+    who: CurrentTenant,
+    queue: QueueDep,
+    dispatcher: DispatcherDep,
+    body: ReconstructionIn | None = None,
+) -> Accepted:
+    """Fuse what is pending and mesh the scene (a job); the mesh is then at ``.../mesh``."""
+    body = body or ReconstructionIn()
+    if body.bounds is not None:  # checked now, not when the job runs
+        grid = GridSpec.from_dict(scene.grid)
+        GridSpec(grid.voxel_size, grid.tile_size, "mapping", tuple(body.bounds))  # type: ignore[arg-type]
+    payload = {"bounds": body.bounds, "refine": body.refine}
+    job = queue.create_job(new_id(), who, scene.id, "reconstruct", payload)
+    dispatcher.wake()
+    return Accepted.model_validate({"job": {"id": job.id}})
+
+
+@router.get(
+    "/mesh",
+    response_class=StreamingResponse,
+    responses={
+        200: {"content": {m: {} for m in _MEDIA.values()}, "description": "the mesh file"},
+        304: {"description": "If-None-Match matched the ETag"},
+        **problems(409),
+    },
+)
+def get_mesh(
+    scene: TenantScene,
+    queue: QueueDep,
+    format: Annotated[Literal["ply", "obj", "glb", "stl"], Query()] = "ply",
+    if_none_match: Annotated[str | None, Header()] = None,
+) -> Response:
+    """The latest reconstruction, streamed, with an ``ETag`` (409 before the first)."""
+    found = queue.mesh(scene.id)
+    if found is None:
+        raise HTTPException(409, "no reconstruction yet: POST /v1/scenes/{id}/reconstructions")
+    path, etag, _ = found
+    tag = f'"{etag}-{format}"'
+    if if_none_match == tag:
+        return Response(status_code=304, headers={"ETag": tag})
+    with np.load(path) as data:
+        mesh = Mesh(data["vertices"], data["faces"], data["inferred"], np.zeros((0, 4), np.int64))
+    payload = mesh_bytes(mesh, format)
+
+    def chunks() -> Iterator[bytes]:
+        for start in range(0, len(payload), 1 << 20):
+            yield payload[start : start + (1 << 20)]
+
+    return StreamingResponse(
+        chunks(),
+        media_type=_MEDIA[format],
+        headers={
+            "ETag": tag,
+            "Content-Length": str(len(payload)),
+            "Content-Disposition": f'attachment; filename="{scene.id}.{format}"',
+        },
+    )
