@@ -27,7 +27,8 @@ def _child(cfg: dict) -> dict:
     from rangefuse.engine import FusionParams, GridSpec, NoiseModel
     from rangefuse.engine.synth import make_dataset
     from rangefuse.service.runners import ProcessRunner
-    from rangefuse.storage.scene import InProcess, open_store
+    from rangefuse.storage.store import open_store
+    from rangefuse.storage.units import InProcess
 
     h = cfg["voxel"]
     data = make_dataset("street", length_m=cfg["length"])

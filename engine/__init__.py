@@ -4,7 +4,9 @@ Certainty fusion of registered range images after Elsner, Whitaker & Abidi (1999
 see ``METHOD.md``.
 """
 
+from .allocation import tiles_touched
 from .certainty import NoiseModel, decode_count, decode_logodds
+from .classify import tiles_in_view
 from .errors import (
     InvalidGridError,
     InvalidInputError,
@@ -25,7 +27,6 @@ from .sensors import (
     SphericalSensor,
     sensor_from_dict,
 )
-from .tiling import tiles_in_view, tiles_touched
 from .volume import DenseGrid, MemoryTileStore, TileStore, dense_logodds
 
 __all__ = [

@@ -2,7 +2,7 @@
 and large arrays in ordinary pages.
 
 *Scratch.* Each scan needs a few arrays of megabytes for a moment: allocation's pixel
-ranges, node pyramid and key room (:mod:`engine.tiling`), the per-quad bounds
+ranges, node pyramid and key room (:mod:`engine.allocation`), the per-quad bounds
 (:mod:`engine._sampling`). Fresh ones cost page faults on first touch (about 0.5 us a page
 on the VMs we measure on: 450 faults, a quarter of a millisecond, per 640 x 480 frame in
 allocation alone) and the allocator hands the memory back between frames. A batch

@@ -27,11 +27,12 @@ from ._sampling import bilinear, prefetch, prefetch_quad, quad_index, quad_origi
 from ._sensor_kernels import project_point
 from ._threads import warn_if_slow_threading
 from .certainty import SHAPE_LINEAR, contribution, pack
+from .classify import FREE, OUT, classify_tiles, reach_radius
 from .errors import InvalidInputError, ScanNotFoundError
-from .grid import GridSpec, pack_keys, unique_keys
+from .grid import GridSpec
 from .meshing import Mesh, extract_mesh
+from .planner import Sphere, plan_add, plan_remove
 from .scans import FusionParams, PreparedScan, Scan, prepare_scan
-from .tiling import FREE, OUT, classify_tiles, tiles_touched
 from .volume import DenseGrid, MemoryTileStore, TileStore, dense_logodds
 
 __all__ = ["IntegrationReport", "Volume", "integrate_seen", "integrate_tiles"]
@@ -184,7 +185,7 @@ def integrate_tiles(
     """Add (``sign=1``) or subtract (``sign=-1``) one scan's contribution to tiles, in place.
 
     Tiles out of the scan's view are skipped; tiles it sees as free space throughout take a
-    constant (see :func:`engine.tiling.classify_tiles`); the others are fused voxel by voxel.
+    constant (see :func:`engine.classify.classify_tiles`); the others are fused voxel by voxel.
 
     Parameters
     ----------
@@ -250,15 +251,6 @@ class IntegrationReport:
     scans: int = 0
 
 
-def _rows_of(keys: np.ndarray, subset: np.ndarray) -> np.ndarray:
-    """Rows of sorted unique ``keys`` that hold each member of ``subset``."""
-    return np.searchsorted(pack_keys(keys), pack_keys(subset))
-
-
-def _isin(keys: np.ndarray, among: np.ndarray) -> np.ndarray:
-    return np.isin(pack_keys(keys), pack_keys(among))
-
-
 class Volume:
     """A fused volume: tiles in a store plus the scans fused into it.
 
@@ -278,6 +270,7 @@ class Volume:
             raise InvalidInputError("tile_size", "store and grid disagree on the tile size")
         self._scans: dict[str, Scan] = {}
         self._prepared: dict[str, PreparedScan] = {}
+        self._spheres: dict[str, Sphere] = {}  # computed when a later batch needs them
 
     # --- scans --------------------------------------------------------------------------------
     @property
@@ -331,78 +324,62 @@ class Volume:
                 self._prepared.pop(scan_id, None)
             raise
 
+    def _sphere(self, scan_id: str) -> Sphere:
+        sphere = self._spheres.get(scan_id)
+        if sphere is None:
+            prepared = self._prepare(scan_id)
+            origin = tuple(float(x) for x in prepared.origin_W)
+            sphere = Sphere(scan_id, origin, reach_radius(prepared))  # type: ignore[arg-type]
+            self._spheres[scan_id] = sphere
+        return sphere
+
     def _integrate_new(
         self, old_ids: list[str], new_ids: list[str], progress: Progress | None
     ) -> IntegrationReport:
-        grid = self.grid
-        existing = self.store.keys()
+        # the plan (engine.planner): allocate, then each scan into the tiles it has in view
         scratch = Scratch()  # working arrays, reused from scan to scan
-        # pass 1: allocation
-        touched_by: dict[str, np.ndarray] = {}
-        for scan_id in new_ids:
-            touched_by[scan_id] = tiles_touched(self._prepare(scan_id), grid, scratch)
-        all_touched = unique_keys(
-            np.concatenate([np.zeros((0, 3), np.int64), *touched_by.values()])
+        earlier = (self._sphere(scan_id) for scan_id in old_ids)
+        plan = plan_add(
+            self.grid, self.store.keys(), new_ids, earlier, self._prepare, scratch=scratch
         )
-        created = all_touched[~_isin(all_touched, existing)] if len(existing) else all_touched
-        keys = unique_keys(np.concatenate([existing, created]))
-        is_new = _isin(keys, created)
-        # pass 2: integration; new scans into every tile in view, old scans into new tiles
-        T = grid.tile_size
+        keys, created = plan.keys, plan.created
+        T = self.grid.tile_size
         data = zeros((len(keys), T, T, T), np.int64)  # ordinary pages: see engine._memory
-        loaded = np.zeros(len(keys), np.bool_)
+        loaded = created.copy()  # created tiles start from unknown
         changed = np.zeros(len(keys), np.bool_)
         updates = 0
-        order = [(scan_id, True) for scan_id in new_ids] + [(s, False) for s in old_ids]
-        for done, (scan_id, is_new_scan) in enumerate(order, 1):
-            prepared = self._prepare(scan_id)
-            candidates = np.arange(len(keys)) if is_new_scan else np.flatnonzero(is_new)
-            if len(candidates) == 0:
-                continue
-            bounds = None
-            if not prepared.has_pyramid:  # the bounds once, for the pyramid and the kernel
-                bounds = prepared.quad_bounds(scratch)
-            status = classify_tiles(prepared, grid, keys[candidates])
-            rows = candidates[status != OUT]
-            to_load = rows[~loaded[rows] & ~is_new[rows]]
-            if len(to_load):
-                data[to_load] = self.store.read(keys[to_load])
-                loaded[to_load] = True
+        for view in plan.views(self._prepare, scratch):
+            self._load_rows(keys, data, loaded, view.rows)
             informed = integrate_seen(
-                prepared, grid, keys, data, rows, status[status != OUT] == FREE, 1, scratch,
-                bounds,
+                self._prepare(view.scan_id), self.grid, keys, data, view.rows, view.free,
+                view.sign, scratch, view.bounds,
             )  # fmt: skip
             changed |= informed > 0
             updates += int(informed.sum())
-            if progress is not None and is_new_scan:
-                progress(done, len(new_ids))
-        # owners, then write what changed or was created
-        owners = self.store.owners(keys)
-        write = changed | is_new
-        # the new scans own the tiles they touched: group (row, scan) pairs by row
-        ids = list(touched_by)
-        pair_rows = np.concatenate(
-            [np.zeros(0, np.int64)] + [_rows_of(keys, touched_by[s]) for s in ids]
-        )
-        pair_scans = np.repeat(np.arange(len(ids)), [len(touched_by[s]) for s in ids])
-        by_row = np.argsort(pair_rows, kind="stable")
-        pair_rows, pair_scans = pair_rows[by_row], pair_scans[by_row]
-        starts = np.flatnonzero(np.r_[True, pair_rows[1:] != pair_rows[:-1]])
-        for row, group in zip(
-            pair_rows[starts].tolist(), np.split(pair_scans, starts[1:]), strict=True
-        ):
-            owners[row] = owners[row] | {ids[k] for k in group.tolist()}
-        write[pair_rows] = True
+            if progress is not None and view.step < len(new_ids):
+                progress(view.step + 1, len(new_ids))
+        # write what changed, was created or changes owners
+        write = changed | created
+        write[plan.owned_rows()] = True
         rows = np.flatnonzero(write)
-        to_load = rows[~loaded[rows] & ~is_new[rows]]  # owner changes on tiles not in view
-        if len(to_load):
-            data[to_load] = self.store.read(keys[to_load])
+        self._load_rows(keys, data, loaded, rows)  # owner changes on tiles not in view
+        owners = plan.owners_after(rows, self.store.owners(keys[rows]))
         written = data if len(rows) == len(keys) else data[rows]  # no copy in the usual case
         # the batch is not used again: a memory store may keep it rather than copy it
-        self.store.write(keys[rows], written, [owners[r] for r in rows], take=True)
+        self.store.write(keys[rows], written, owners, take=True)
         return IntegrationReport(
-            changed=keys[changed], created=created, voxel_updates=updates, scans=len(new_ids)
-        )
+            changed=keys[changed], created=plan.created_keys(), voxel_updates=updates,
+            scans=len(new_ids),
+        )  # fmt: skip
+
+    def _load_rows(
+        self, keys: np.ndarray, data: np.ndarray, loaded: np.ndarray, rows: np.ndarray
+    ) -> None:
+        """Read the tiles ``rows`` of ``keys`` into ``data`` unless they are there already."""
+        todo = rows[~loaded[rows]]
+        if len(todo):
+            data[todo] = self.store.read(keys[todo])
+            loaded[todo] = True
 
     def remove(self, scan_id: str) -> IntegrationReport:
         """Remove a scan: subtract exactly its contribution; drop tiles it alone owned.
@@ -411,41 +388,28 @@ class Volume:
         """
         if scan_id not in self._scans:
             raise ScanNotFoundError(f"scan {scan_id!r} is not in the volume")
-        prepared = self._prepare(scan_id)
-        keys = self.store.keys()
-        owners = self.store.owners(keys)
-        orphan = np.array([own == {scan_id} for own in owners], dtype=np.bool_)
-        kept = np.flatnonzero(~orphan)
-        status = classify_tiles(prepared, self.grid, keys[kept])
-        rows = kept[status != OUT]
+        plan = plan_remove(self.grid, self._sphere(scan_id), self.store.keys(), self.store.owners)
+        keys = plan.keys
+        in_view = next(plan.views(self._prepare), None)  # one step: the scan
+        # the tiles it is subtracted from, and those it no longer owns
+        seen = in_view.rows if in_view is not None else keys[:0, 0]
+        rows = np.union1d(seen, plan.owned_rows())
         data = self.store.read(keys[rows])
-        informed = integrate_seen(
-            prepared,
-            self.grid,
-            keys[rows],
-            data,
-            np.arange(len(rows)),
-            status[status != OUT] == FREE,
-            -1,
-        )
-        new_owners = [owners[r] - {scan_id} for r in rows]
-        # owners also change on tiles the scan touched but does not inform
-        relabel = [r for r in kept if scan_id in owners[r] and r not in set(rows.tolist())]
-        self.store.write(keys[rows], data, new_owners)
-        if relabel:
-            rel = np.array(relabel, np.int64)
-            self.store.write(
-                keys[rel], self.store.read(keys[rel]), [owners[r] - {scan_id} for r in relabel]
-            )
-        self.store.delete(keys[orphan])
+        informed = np.zeros(len(rows), np.int64)
+        if in_view is not None:
+            informed = integrate_seen(
+                self._prepare(scan_id), self.grid, keys[rows], data,
+                np.searchsorted(rows, in_view.rows), in_view.free, in_view.sign,
+            )  # fmt: skip
+        self.store.write(keys[rows], data, plan.owners_after(rows, self.store.owners(keys[rows])))
+        self.store.delete(plan.deleted)
         del self._scans[scan_id]
         self._prepared.pop(scan_id, None)
+        self._spheres.pop(scan_id, None)
         return IntegrationReport(
-            changed=keys[rows][informed > 0],
-            deleted=keys[orphan],
-            voxel_updates=int(informed.sum()),
-            scans=1,
-        )
+            changed=keys[rows][informed > 0], deleted=plan.deleted,
+            voxel_updates=int(informed.sum()), scans=1,
+        )  # fmt: skip
 
     # --- reading ------------------------------------------------------------------------------
     def tile_keys(self) -> np.ndarray:

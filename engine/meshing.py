@@ -32,11 +32,11 @@ from numba import njit, prange
 from ._mc_tables import EDGE_AXIS, EDGE_CORNER, TRI_COUNT, TRI_TABLE
 from ._sampling import point_contribution
 from .certainty import logit, pack, quantise
+from .classify import FREE, OUT, classify_tiles
 from .defaults import COUNT_BITS, REFINE_SAMPLES
 from .errors import InvalidGridError
 from .grid import Bounds, GridSpec, pack_keys, unique_keys
 from .scans import FusionParams, PreparedScan
-from .tiling import FREE, OUT, classify_tiles
 from .volume import TileStore
 
 __all__ = [
@@ -606,20 +606,31 @@ def mesh_tiles(
 
 
 def stitch(parts: Sequence[TileMeshes] | TileMeshes) -> Mesh:
-    """Merge tile meshes into one mesh by vertex key (exact; no float tolerance)."""
+    """Merge tile meshes into one mesh by vertex key (exact; no float tolerance).
+
+    The result does not depend on how the tiles were grouped into parts or in which order
+    the parts come: vertices are ordered by key, faces by tile key (a tile's own faces in
+    the order meshing made them), so a mesh stitched from cached tile meshes is the same
+    bits as a fresh one.
+    """
     if isinstance(parts, TileMeshes):
         parts = [parts]
     vkey = np.concatenate([np.zeros((0, 4), np.int64)] + [p.vertex_keys for p in parts])
     verts = np.concatenate([np.zeros((0, 3), np.float64)] + [p.vertices for p in parts])
     faces_list = []
+    face_tiles = []
     base = 0
     for p in parts:
         faces_list.append(p.faces + base)
         base += len(p.vertex_keys)
+        face_tiles.append(np.repeat(p.keys, np.diff(p.face_offsets), axis=0))
     faces = np.concatenate([np.zeros((0, 3), np.int64), *faces_list])
     inferred = np.concatenate([np.zeros(0, np.bool_)] + [p.inferred for p in parts])
     if len(vkey) == 0:
         return Mesh(verts, faces, inferred, vkey)
+    if len(parts) > 1:  # faces by tile key, whatever the order of the parts
+        order = np.argsort(pack_keys(np.concatenate(face_tiles)), kind="stable")
+        faces, inferred = faces[order], inferred[order]
     packed = _pack_vertex_keys(vkey)
     _, first, inverse = np.unique(packed, return_index=True, return_inverse=True)
     return Mesh(

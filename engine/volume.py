@@ -3,7 +3,7 @@
 A tile is an int64 array ``(T, T, T)`` of packed voxels (see
 :mod:`engine.certainty`: fixed-point sum of log-odds and count of informing
 scans; 0 is *unknown*) plus the set of scan ids that *own* it, i.e. whose
-allocation (:func:`engine.tiling.tiles_touched`) includes it. A tile exists
+allocation (:func:`engine.allocation.tiles_touched`) includes it. A tile exists
 exactly while it has an owner. The Zarr store of :mod:`storage` implements the
 same protocol; both pass the same conformance tests.
 """

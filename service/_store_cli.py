@@ -18,7 +18,9 @@ from rangefuse.engine import FusionParams, GridSpec, Scan
 from rangefuse.engine.meshing import Mesh
 from rangefuse.storage import open_dataset
 from rangefuse.storage.dataset import read_scan_file
-from rangefuse.storage.scene import CACHE_MB, InProcess, Runner, Scene, open_store
+from rangefuse.storage.scene import Scene
+from rangefuse.storage.store import CACHE_MB, open_store
+from rangefuse.storage.units import InProcess, Runner
 
 from ._cliutil import (
     CommandError,
@@ -37,10 +39,12 @@ __all__ = ["add_store_commands", "cache_option", "fuse_into_store", "workers_opt
 
 def _announce_recovery(scene: Scene) -> None:
     r = scene.recovered
-    if r["rebuilt_tiles"] or r["orphan_scans"] or r["removals_resumed"] or r["temporaries"]:
+    if any(r.get(k) for k in ("discarded", "published", "rebuilt_tiles", "orphan_scans",
+                               "removals_resumed", "temporaries")):  # fmt: skip
         print(
-            f"recovered an interrupted run: rebuilt {r['rebuilt_tiles']} tiles, removed "
-            f"{r['orphan_scans']} unacknowledged scans and {r['partials']} partial chunk files, "
+            f"recovered an interrupted run: discarded {r['discarded']} tiles staged by an "
+            f"unfinished group, published {r['published']} of a finished one, rebuilt "
+            f"{r['rebuilt_tiles']} tiles, removed {r['orphan_scans']} unacknowledged scans, "
             f"resumed {r['removals_resumed']} removals"
         )
 

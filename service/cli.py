@@ -31,7 +31,7 @@ from rangefuse.engine import (
 from rangefuse.engine.certainty import SHAPES
 from rangefuse.engine.defaults import EPS_PER_VOXEL, RHO, TILE_SIZE_VOX
 from rangefuse.storage import DatasetError, open_dataset, write_dataset
-from rangefuse.storage.scene import StoreError
+from rangefuse.storage.store import StoreError
 
 from ._cliutil import (
     CommandError,

@@ -1,6 +1,6 @@
 """Runners: where units of work run (DESIGN.md "Scale-out").
 
-:class:`storage.scene.InProcess` runs them here; :class:`ProcessRunner` runs them on a pool
+:class:`storage.units.InProcess` runs them here; :class:`ProcessRunner` runs them on a pool
 of worker processes started with ``spawn`` (numba's OpenMP layer breaks forked children),
 each with its share of the machine's cores as numba threads. Results are bit-identical
 either way: contributions are exact integers and every tile has one writer.
@@ -13,7 +13,7 @@ import os
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 
-from rangefuse.storage.scene import TileUnit, UnitResult
+from rangefuse.storage.units import TileUnit, UnitResult
 
 __all__ = ["ProcessRunner", "spawn_pool"]
 

@@ -12,8 +12,8 @@ from .dataset import (
     write_scan_file,
 )
 from .grids import read_grid, write_grid
-from .scene import (
-    Scene,
+from .scene import Scene
+from .store import (
     SceneConflictError,
     Store,
     StoreError,
@@ -21,6 +21,7 @@ from .scene import (
     StoreVersionError,
     open_store,
 )
+from .tile_store import ZarrTileStore
 from .zarr_tiles import TileArrayError, ZarrTiles
 
 __all__ = [
@@ -37,6 +38,7 @@ __all__ = [
     "StoreLockedError",
     "StoreVersionError",
     "TileArrayError",
+    "ZarrTileStore",
     "ZarrTiles",
     "open_dataset",
     "open_store",

@@ -89,7 +89,7 @@ class ZarrTiles:
     """The tile array ``tiles`` of one scene's Zarr v3 group on a local directory.
 
     Build one with :meth:`create` or :meth:`open`. Keys are int64 arrays ``(n, 3)`` of tile
-    indices (``engine.tiling``); tile data is int64 ``(n, T, T, T)`` of packed voxels.
+    indices (``engine.grid``); tile data is int64 ``(n, T, T, T)`` of packed voxels.
     One process writes a given tile at a time (docs/storage.md, "One writer per tile").
     """
 
@@ -227,23 +227,36 @@ class ZarrTiles:
         out = np.zeros((len(keys), T, T, T), np.int64)
         flat = out.reshape(len(keys), T**3)
         for n, name in enumerate(self._chunk_names(keys)):
+            path = self.group_path / name
             try:
-                with open(self.group_path / name, "rb") as fh:
+                with open(path, "rb") as fh:
                     raw: bytes = fh.read()
             except (FileNotFoundError, NotADirectoryError):
                 continue
-            try:
-                if self._zstd is not None:
-                    raw = self._zstd.decode(raw)
-                if len(raw) != self._nbytes:
-                    raise ValueError(f"{len(raw)} bytes, expected {self._nbytes}")
-                tile = np.frombuffer(raw, "<i8")
-            except Exception as exc:
-                raise TileArrayError(
-                    f"tile {keys[n].tolist()}: chunk {self.group_path / name} is corrupt ({exc})"
-                ) from exc
-            flat[n] = tile
+            flat[n] = self.decode(raw, f"tile {keys[n].tolist()}: chunk {path}")
         return out
+
+    def encode(self, tile: np.ndarray) -> bytes:
+        """The bytes of one tile's chunk (int64 (T, T, T)), as zarr writes them."""
+        raw = np.ascontiguousarray(tile, "<i8")
+        return self._zstd.encode(raw) if self._zstd is not None else raw.tobytes()
+
+    def decode(self, raw: bytes, what: str) -> np.ndarray:
+        """One tile (int64 (T**3,)) from its chunk bytes; ``what`` names it in the error.
+
+        Raises
+        ------
+        TileArrayError
+            When the bytes do not decode to one tile.
+        """
+        try:
+            if self._zstd is not None:
+                raw = self._zstd.decode(raw)
+            if len(raw) != self._nbytes:
+                raise ValueError(f"{len(raw)} bytes, expected {self._nbytes}")
+            return np.frombuffer(raw, "<i8")
+        except Exception as exc:
+            raise TileArrayError(f"{what} is corrupt ({exc})") from exc
 
     def write(self, keys: np.ndarray, data: np.ndarray) -> None:
         """Store whole tiles: ``data`` int64 (n, T, T, T) for ``keys`` int64 (n, 3).
@@ -263,14 +276,11 @@ class ZarrTiles:
             )
         if len(keys) > 1 and len(unique_keys(keys)) != len(keys):
             raise TileArrayError("keys: the same tile is written twice in one call")
-        data = data.astype("<i8", copy=False)
         for tile, name in zip(data, self._chunk_names(keys), strict=True):
             if not tile.any():
                 self._store.delete_sync(name)
                 continue
-            raw = np.ascontiguousarray(tile)
-            payload = self._zstd.encode(raw) if self._zstd is not None else raw.tobytes()
-            self._store.set_sync(name, self._prototype.buffer.from_bytes(payload))
+            self._store.set_sync(name, self._prototype.buffer.from_bytes(self.encode(tile)))
 
     def delete(self, keys: np.ndarray) -> None:
         """Remove the chunks of ``keys``; missing ones are ignored (not fsynced)."""
@@ -290,26 +300,7 @@ class ZarrTiles:
         the same.
         """
         keys = self._check_keys(keys)
-        if len(keys) >= _SYNCFS_FROM and _syncfs(self.path):
-            return
-        folders: set[str] = set()
-        for name in self._chunk_names(keys):
-            path = self.group_path / name
-            try:
-                fd = os.open(path, os.O_RDONLY)
-            except (FileNotFoundError, NotADirectoryError):
-                pass
-            else:
-                try:
-                    os.fsync(fd)
-                finally:
-                    os.close(fd)
-            parts = name.split("/")
-            for depth in range(1, len(parts)):
-                folders.add("/".join(parts[:depth]))
-        for folder in sorted(folders, key=len, reverse=True):  # deepest first
-            with contextlib.suppress(FileNotFoundError, NotADirectoryError):
-                _fsync_path(self.group_path / folder)
+        fsync_paths(self.group_path, list(self._chunk_names(keys)))
 
     def remove_partials(self) -> int:
         """Delete the ``<chunk>.<32 hex>.partial`` files that killed writes left behind.
@@ -334,14 +325,50 @@ class ZarrTiles:
         Returns sorted unique int64 (n, 3). Files that are not chunks of a valid key (such as
         ``.partial`` orphans) are skipped.
         """
-        found: list[tuple[int, int, int]] = []
-        for i, dir_i in _int_entries(self.path / "c", dirs=True):
-            for j, dir_j in _int_entries(dir_i, dirs=True):
-                for k, _ in _int_entries(dir_j, dirs=False):
-                    found.append((i, j, k))
-        if not found:
-            return np.zeros((0, 3), np.int64)
-        return unique_keys(np.array(found, np.int64) - KEY_OFFSET)
+        return stored_chunk_keys(self.path / "c")
+
+
+def fsync_paths(root: Path, names: list[str]) -> None:
+    """Make the state of the files ``root/name`` durable, written, replaced or deleted.
+
+    fsyncs each file that exists and every existing folder from its folder up to ``root``.
+    From ``_SYNCFS_FROM`` files on, one ``syncfs`` of the file system is much cheaper than a
+    ``fsync`` per file and folder (measured: 102,040 fsyncs took 12 s for 85k tiles) and
+    promises the same.
+    """
+    if len(names) >= _SYNCFS_FROM and root.exists() and _syncfs(root):
+        return
+    folders: set[str] = set()
+    for name in names:
+        try:
+            fd = os.open(root / name, os.O_RDONLY)
+        except (FileNotFoundError, NotADirectoryError):
+            pass
+        else:
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        parts = name.split("/")
+        for depth in range(1, len(parts)):
+            folders.add("/".join(parts[:depth]))
+    for folder in sorted(folders, key=len, reverse=True):  # deepest first
+        with contextlib.suppress(FileNotFoundError, NotADirectoryError):
+            _fsync_path(root / folder)
+
+
+def stored_chunk_keys(folder: Path) -> np.ndarray:
+    """Keys of the chunk files under ``folder`` (an array's ``c`` folder, named
+    ``<i>/<j>/<k>`` by chunk index), by walking it; other files are skipped. Sorted unique
+    int64 (n, 3)."""
+    found: list[tuple[int, int, int]] = []
+    for i, dir_i in _int_entries(folder, dirs=True):
+        for j, dir_j in _int_entries(dir_i, dirs=True):
+            for k, _ in _int_entries(dir_j, dirs=False):
+                found.append((i, j, k))
+    if not found:
+        return np.zeros((0, 3), np.int64)
+    return unique_keys(np.array(found, np.int64) - KEY_OFFSET)
 
 
 def _int_entries(folder: Path, dirs: bool) -> Iterator[tuple[int, Path]]:

@@ -22,17 +22,18 @@ from rangefuse.engine import (
     Scan,
     ScanNotFoundError,
     Volume,
+    allocation,
     decode_count,
     decode_logodds,
     prepare_scan,
-    tiling,
 )
 from rangefuse.engine._sampling import QUAD_BLOCK
+from rangefuse.engine.allocation import tiles_touched
+from rangefuse.engine.classify import FREE, OUT, classify_tiles
 from rangefuse.engine.defaults import COUNT_BITS, LOGIT_SCALE
 from rangefuse.engine.fusion import integrate_seen
 from rangefuse.engine.grid import KEY_LIMIT, unique_keys
 from rangefuse.engine.synth import make_dataset
-from rangefuse.engine.tiling import FREE, OUT, classify_tiles, tiles_touched
 
 from tests import reference, scenes
 
@@ -131,7 +132,7 @@ def test_allocation_walk_overflow_gives_the_same_tiles(
     for _, scan in make_dataset(name, views=2).scans:
         prepared = prepare_scan(scan, params)
         expected = tiles_touched(prepared, grid)
-        monkeypatch.setattr(tiling, "_WALK_ROOM", 1)
+        monkeypatch.setattr(allocation, "_WALK_ROOM", 1)
         assert np.array_equal(tiles_touched(prepared, grid), expected)
         monkeypatch.undo()
     assert len(expected) > 100
@@ -387,7 +388,7 @@ def test_volume_errors() -> None:
 @pytest.mark.parametrize("filter_name", ["none", "median3", "mean5"])
 def test_bounding_sphere_holds_everything_the_scan_informs(name, filter_name):
     """The kernel-free sphere the service records is never tighter than the scan's reach."""
-    from rangefuse.engine.tiling import bounding_sphere, reach_radius
+    from rangefuse.engine.classify import bounding_sphere, reach_radius
 
     for no_return in ("free", "invalid"):
         params = _params(filter=filter_name, no_return=no_return)

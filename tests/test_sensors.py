@@ -150,7 +150,7 @@ def test_kernel_projection_matches_reference(name: str) -> None:
 
 @pytest.mark.parametrize("name", sorted(ALL))
 def test_a_pixels_points_are_evenly_spaced_in_range(name: str) -> None:
-    # allocation (engine.tiling._slab_tiles) steps slab corners along a pixel's points
+    # allocation (engine.allocation._slab_tiles) steps slab corners along a pixel's points
     sensor = sensor_from_dict(ALL[name])
     u, v, d = _pixels(sensor, 300, 11)
     d = 0.5 * sensor.max_range + 0.4 * d

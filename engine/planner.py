@@ -1,0 +1,297 @@
+"""The planner: which tiles a change to the volume writes, and which scan goes into which tile
+(DESIGN.md invariants 1 and 4; ``docs/planner.md``).
+
+These rules make the volume exact, the same bits whatever the order in which scans arrive
+and however the work is split. They are written here once: the in-memory
+:class:`~engine.fusion.Volume` and the persistent scene of :mod:`storage` both carry out
+the plans made here and decide none of this themselves.
+
+1. **Allocation.** A new scan allocates :func:`~engine.allocation.tiles_touched`; the tiles
+   among them that do not exist yet are *created* (they start from unknown).
+2. **A new scan reaches every tile it sees.** It is added to every tile, existing or
+   created, that it has in view (free space seen through old tiles included).
+3. **Backfill.** A created tile also receives every earlier scan that has it in view. The
+   earlier scans tested are those whose bounding sphere (:class:`Sphere`) meets the box of
+   the created tiles (a conservative test: the others see none of them).
+4. **Owners.** A new scan owns the tiles it allocates; a tile exists while it has an owner.
+5. **Removal.** Removing a scan subtracts it from every tile it has in view that keeps
+   another owner, deletes the tiles it alone owned, and drops its ownership everywhere.
+6. **Rebuild.** A tile rebuilt from the scans starts from unknown and receives every scan
+   that has it in view: a backfill of tiles treated as created.
+
+"In view" is :func:`~engine.classify.classify_tiles` with the plan's ``halo``: 0 tests a
+tile's voxel centres (what fusion needs), 1 adds the one-voxel halo above them (the cube
+edges of the tile's mesh: an executor that keeps tile meshes up to date plans with 1, so
+that the tiles a scan writes are also the tiles whose meshes it may change). The extra
+tiles of a halo receive nothing from the kernel: both give the same bits.
+
+A plan is made in two stages, so that an executor can interleave them with its work:
+:func:`plan_add` (and the others) decide the tiles and the steps at once, and
+:meth:`Plan.views` classifies each step's scan against its candidate tiles when the
+executor asks for it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ._memory import Scratch
+from .allocation import tiles_touched
+from .classify import FREE, OUT, classify_tiles
+from .grid import GridSpec, pack_keys, unique_keys
+from .scans import PreparedScan
+
+__all__ = [
+    "Plan",
+    "Sphere",
+    "Step",
+    "View",
+    "plan_add",
+    "plan_rebuild",
+    "plan_remove",
+    "scans_near",
+    "tiles_near",
+]
+
+#: Loads a scan prepared for the kernels, by id.
+Loader = Callable[[str], PreparedScan]
+
+_NO_KEYS = np.zeros((0, 3), np.int64)
+_NO_ROWS = np.zeros(0, np.int64)
+
+
+@dataclass(frozen=True)
+class Sphere:
+    """A ball around a scan's sensor outside which the scan informs nothing.
+
+    ``radius_m`` may be ``inf`` (a sensor whose reach is unbounded).
+    """
+
+    scan_id: str
+    origin: tuple[float, float, float]
+    radius_m: float
+
+
+@dataclass(frozen=True)
+class Step:
+    """One scan's part of a plan: add (``sign`` 1) or subtract (-1) the scan in the tiles
+    ``candidates`` (rows of :attr:`Plan.keys`) that it has in view."""
+
+    scan_id: str
+    candidates: np.ndarray
+    sign: int = 1
+
+
+@dataclass(frozen=True)
+class View:
+    """Step number ``step`` of a plan, classified: the rows of :attr:`Plan.keys` the scan
+    has in view, and for each whether the scan sees it as free space throughout (it then
+    adds ``logit(rho)`` to every voxel). ``bounds`` are the scan's per-quad bounds when
+    classifying computed them (in the scratch of :meth:`Plan.views`: valid until the next
+    view is drawn), else None."""
+
+    scan_id: str
+    step: int
+    rows: np.ndarray
+    free: np.ndarray
+    sign: int
+    bounds: np.ndarray | None = None
+
+
+@dataclass
+class Plan:
+    """What a change writes.
+
+    Attributes
+    ----------
+    keys : int64 (n, 3)
+        Sorted tile keys: every tile a step may write, and the created ones.
+    created : bool (n,)
+        Tiles that start from unknown instead of their stored data (created, or rebuilt).
+    steps : list of Step
+        The scans to add or subtract, in order: the new scans first.
+    owned : dict
+        Rows of ``keys`` each new scan owns (rule 4).
+    disowned : str or None
+        The scan whose ownership goes everywhere (a removal).
+    deleted : int64 (m, 3)
+        Tiles that go away (a removal: the tiles the scan alone owned).
+    halo : int
+        The halo of "in view" (see the module's note).
+    """
+
+    grid: GridSpec
+    keys: np.ndarray
+    created: np.ndarray
+    steps: list[Step]
+    halo: int = 0
+    owned: dict[str, np.ndarray] = field(default_factory=dict)
+    disowned: str | None = None
+    deleted: np.ndarray = field(default_factory=lambda: _NO_KEYS)
+
+    def views(self, load: Loader, scratch: Scratch | None = None) -> Iterator[View]:
+        """Each step classified, in order (see :class:`View`); steps whose scan sees none
+        of its candidates are skipped. ``load`` gives a step's scan."""
+        for n, step in enumerate(self.steps):
+            if len(step.candidates) == 0:
+                continue
+            scan = load(step.scan_id)
+            bounds = None
+            if not scan.has_pyramid:  # the bounds once, for the pyramid and the kernel
+                bounds = scan.quad_bounds(scratch)
+            status = classify_tiles(scan, self.grid, self.keys[step.candidates], self.halo)
+            seen = status != OUT
+            if seen.any():
+                yield View(step.scan_id, n, step.candidates[seen], status[seen] == FREE,
+                           step.sign, bounds)  # fmt: skip
+
+    def created_keys(self) -> np.ndarray:
+        return self.keys[self.created]
+
+    def owned_rows(self) -> np.ndarray:
+        """Rows that new scans own (sorted, unique)."""
+        return np.unique(np.concatenate([_NO_ROWS, *self.owned.values()]))
+
+    def owners_after(
+        self, rows: np.ndarray, before: Sequence[frozenset[str]]
+    ) -> list[frozenset[str]]:
+        """The owners of the tiles ``rows`` once the plan is carried out, from ``before``
+        (rule 4: the new scans join the owners of the tiles they allocate; a removal drops
+        its scan)."""
+        ids = list(self.owned)
+        pair_rows = np.concatenate([_NO_ROWS, *(self.owned[s] for s in ids)])
+        pair_scans = np.repeat(np.arange(len(ids)), [len(self.owned[s]) for s in ids])
+        order = np.argsort(pair_rows, kind="stable")
+        pair_rows, pair_scans = pair_rows[order], pair_scans[order]
+        joining: dict[int, set[str]] = {}
+        if len(pair_rows):
+            starts = np.flatnonzero(np.r_[True, pair_rows[1:] != pair_rows[:-1]])
+            for row, group in zip(
+                pair_rows[starts].tolist(), np.split(pair_scans, starts[1:]), strict=True
+            ):
+                joining[row] = {ids[k] for k in group.tolist()}
+        gone = frozenset() if self.disowned is None else frozenset({self.disowned})
+        return [
+            (own | joining.get(row, set())) - gone
+            for row, own in zip(np.asarray(rows).tolist(), before, strict=True)
+        ]
+
+
+def _box_distance(lo: np.ndarray, hi: np.ndarray, origin: Sequence[float]) -> np.ndarray:
+    """Distance from ``origin`` to each box ``[lo, hi]`` (float64 (n, 3) each)."""
+    o = np.asarray(origin, np.float64)
+    return np.sqrt(np.sum(np.maximum(np.maximum(lo - o, o - hi), 0.0) ** 2, axis=-1))
+
+
+def _reaches(sphere: Sphere, distance: np.ndarray, tile_m: float) -> np.ndarray:
+    """The sphere's test (with one tile of slack) against distances to boxes."""
+    if not math.isfinite(sphere.radius_m):
+        return np.ones(distance.shape, np.bool_)
+    return distance <= sphere.radius_m + tile_m
+
+
+def scans_near(spheres: Iterable[Sphere], keys: np.ndarray, grid: GridSpec) -> list[str]:
+    """Ids of the scans whose sphere meets the box of the tiles ``keys`` (rule 3's test;
+    in the order given)."""
+    if len(keys) == 0:
+        return []
+    tile_m = grid.tile_size_m
+    lo = keys.min(axis=0) * tile_m
+    hi = (keys.max(axis=0) + 1) * tile_m
+    return [s.scan_id for s in spheres if _reaches(s, _box_distance(lo, hi, s.origin), tile_m)]
+
+
+def tiles_near(sphere: Sphere, keys: np.ndarray, grid: GridSpec) -> np.ndarray:
+    """Mask of the tiles ``keys`` (int64 (n, 3)) whose box the sphere meets."""
+    tile_m = grid.tile_size_m
+    lo = keys * tile_m
+    return _reaches(sphere, _box_distance(lo, lo + tile_m, sphere.origin), tile_m)
+
+
+def _isin(keys: np.ndarray, among: np.ndarray) -> np.ndarray:
+    if len(among) == 0:
+        return np.zeros(len(keys), np.bool_)
+    return np.isin(pack_keys(keys), pack_keys(among))
+
+
+def _rows_of(keys: np.ndarray, subset: np.ndarray) -> np.ndarray:
+    """Rows of sorted unique ``keys`` that hold each member of ``subset``."""
+    return np.searchsorted(pack_keys(keys), pack_keys(subset))
+
+
+def plan_add(
+    grid: GridSpec,
+    existing: np.ndarray,
+    new: Sequence[str],
+    earlier: Iterable[Sphere],
+    load: Loader,
+    *,
+    halo: int = 0,
+    scratch: Scratch | None = None,
+) -> Plan:
+    """Plan the fusion of the scans ``new`` into a volume whose tiles are ``existing``
+    (int64 (n, 3), sorted) and whose earlier scans are bounded by ``earlier``: rules 1 to 4.
+
+    ``load`` gives a scan prepared for the kernels (the new ones are allocated here, one at
+    a time; the earlier ones are only loaded when :meth:`Plan.views` reaches them).
+    """
+    existing = np.asarray(existing, np.int64).reshape(-1, 3)
+    touched = {scan_id: tiles_touched(load(scan_id), grid, scratch) for scan_id in new}
+    all_touched = unique_keys(np.concatenate([_NO_KEYS, *touched.values()]))
+    created_keys = all_touched[~_isin(all_touched, existing)]
+    keys = unique_keys(np.concatenate([existing, created_keys]))
+    created = _isin(keys, created_keys)
+    everything = np.arange(len(keys), dtype=np.int64)
+    steps = [Step(scan_id, everything) for scan_id in new]
+    if len(created_keys):
+        exclude = set(new)
+        backfill = np.flatnonzero(created)
+        nearby = scans_near((s for s in earlier if s.scan_id not in exclude), created_keys, grid)
+        steps += [Step(scan_id, backfill) for scan_id in nearby]
+    owned = {scan_id: _rows_of(keys, tiles) for scan_id, tiles in touched.items()}
+    return Plan(grid, keys, created, steps, halo, owned)
+
+
+def plan_remove(
+    grid: GridSpec,
+    sphere: Sphere,
+    existing: np.ndarray,
+    owners: Callable[[np.ndarray], Sequence[frozenset[str]]],
+    *,
+    halo: int = 0,
+) -> Plan:
+    """Plan the removal of the scan ``sphere.scan_id`` (rule 5) from a volume whose tiles are
+    ``existing`` (int64 (n, 3), sorted). The candidates are the tiles the sphere reaches;
+    ``owners(keys)`` gives the owners of tiles. In the plan, ``owned`` lists the kept tiles
+    the scan owned (their owners change)."""
+    scan_id = sphere.scan_id
+    existing = np.asarray(existing, np.int64).reshape(-1, 3)
+    near = existing[tiles_near(sphere, existing, grid)]
+    before = owners(near)
+    alone = np.array([not (own - {scan_id}) for own in before], np.bool_).reshape(-1)
+    kept = near[~alone]
+    owned = np.flatnonzero([scan_id in own for own, a in zip(before, alone, strict=True) if not a])
+    steps = [Step(scan_id, np.arange(len(kept), dtype=np.int64), -1)]
+    return Plan(grid, kept, np.zeros(len(kept), np.bool_), steps, halo,
+                owned={scan_id: owned.astype(np.int64)}, disowned=scan_id,
+                deleted=near[alone])  # fmt: skip
+
+
+def plan_rebuild(
+    grid: GridSpec,
+    keys: np.ndarray,
+    informing: dict[str, np.ndarray],
+    *,
+    halo: int = 0,
+) -> Plan:
+    """Plan rebuilding the tiles ``keys`` (int64 (n, 3), sorted) from unknown (rule 6):
+    ``informing[scan_id]`` lists the rows of ``keys`` each scan may inform."""
+    keys = np.asarray(keys, np.int64).reshape(-1, 3)
+    steps = [
+        Step(scan_id, np.asarray(rows, np.int64)) for scan_id, rows in sorted(informing.items())
+    ]
+    return Plan(grid, keys, np.ones(len(keys), np.bool_), steps, halo)

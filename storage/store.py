@@ -1,0 +1,310 @@
+"""A store directory: the layout marker, the catalog, one folder per scene, the writer locks.
+
+Layout and protocol: ``docs/storage.md``. Many processes may open a store (the service's
+API process archives uploads while workers fuse); the tiles of a scene are written only by
+the holder of the scene's writer lock (:meth:`Store.open_scene`, :func:`open_store`).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from rangefuse.engine import FusionParams, GridSpec, Scan
+from rangefuse.engine.classify import bounding_sphere
+
+from .archive import ScanArchive
+from .catalog import Catalog, ScanRow
+from .zarr_tiles import ZarrTiles
+
+if TYPE_CHECKING:
+    from .scene import Scene
+    from .units import Runner
+
+__all__ = [
+    "CACHE_MB",
+    "DEFAULT_SCENE",
+    "STORE_VERSION",
+    "SceneConflictError",
+    "Store",
+    "StoreError",
+    "StoreLockedError",
+    "StoreVersionError",
+    "open_store",
+]
+
+#: The layout this rangefuse writes. Version 1 (tiles written in place, a journal of tiles in
+#: flight rebuilt at open) is read and upgraded on open: its marker is rewritten, and a
+#: scene's journal is rebuilt the first time the scene is opened (docs/storage.md).
+STORE_VERSION = 2
+_READS_VERSIONS = (1, 2)
+_MARKER = "rangefuse-store.json"
+#: What a store holds before its marker is written: a creation killed midway is resumed.
+_CREATION_NAMES = frozenset(
+    {"catalog.sqlite", "catalog.sqlite-wal", "catalog.sqlite-shm", "catalog.sqlite-journal",
+     "lock", "scenes",
+     f".{_MARKER}.tmp"}
+)  # fmt: skip
+#: Default memory budget of the tile cache.
+CACHE_MB = 512
+#: The scene the command line keeps in a store.
+DEFAULT_SCENE = "default"
+
+
+class StoreError(RuntimeError):
+    """A store that cannot be used as asked (the message says why)."""
+
+
+class StoreVersionError(StoreError):
+    """The store was written by a rangefuse with another layout version."""
+
+
+class StoreLockedError(StoreError):
+    """Another process writes the store."""
+
+
+class SceneConflictError(StoreError):
+    """Parameters that disagree with an existing scene."""
+
+
+# --------------------------------------------------------------------------------------------
+# the store: a directory with a marker, a catalog and scenes
+
+
+class Store:
+    """A store directory: the layout marker, the catalog and one folder per scene.
+
+    Many processes may open a store (the service's API process stores uploads while worker
+    processes fuse); tiles of a scene are written only by the holder of the scene's writer
+    lock (:meth:`open_scene`).
+    """
+
+    def __init__(self, path: Path, catalog: Catalog) -> None:
+        self.path = path
+        self.catalog = catalog
+
+    @staticmethod
+    def open(path: str | os.PathLike[str], create: bool = False) -> Store:
+        """Open a store (creating an empty one if ``create``); checks the layout version."""
+        path = Path(path)
+        marker = path / _MARKER
+        version = STORE_VERSION
+        if marker.exists():
+            try:
+                meta = json.loads(marker.read_text())
+                version = int(meta["version"])
+            except (ValueError, KeyError, TypeError) as exc:
+                raise StoreError(f"{path}: damaged {_MARKER} ({exc})") from None
+            if meta.get("format") != "rangefuse-store":
+                raise StoreError(f"{path}: not a rangefuse store")
+            if version not in _READS_VERSIONS:
+                raise StoreVersionError(
+                    f"{path}: store layout version {version}; this rangefuse reads versions "
+                    f"{', '.join(map(str, _READS_VERSIONS))}"
+                )
+        elif not create:
+            raise StoreError(f"{path}: not a rangefuse store (no {_MARKER})")
+        elif path.exists() and (
+            not path.is_dir() or any(p.name not in _CREATION_NAMES for p in path.iterdir())
+        ):
+            raise StoreError(f"{path}: exists and is not an empty folder or a rangefuse store")
+        path.mkdir(parents=True, exist_ok=True)
+        catalog = Catalog(path / "catalog.sqlite")
+        if not marker.exists() or version != STORE_VERSION:  # new, or version 1 upgraded
+            _write_marker(path)
+        return Store(path, catalog)
+
+    def close(self) -> None:
+        self.catalog.close()
+
+    def __enter__(self) -> Store:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- scenes -------------------------------------------------------------------------------
+    def scene_path(self, scene_id: str) -> Path:
+        return self.path / "scenes" / scene_id
+
+    def create_scene(
+        self,
+        scene_id: str,
+        grid: GridSpec,
+        params: FusionParams,
+        name: str | None = None,
+        tenant: str = "local",
+    ) -> None:
+        """Record a scene and create its Zarr group and tile array."""
+        group = self.scene_path(scene_id) / "scene.zarr"
+        ZarrTiles.create(group, grid.tile_size)
+        with self.catalog.transaction():
+            self.catalog.create_scene(
+                scene_id, name or scene_id, tenant, grid.to_dict(), params.to_dict()
+            )
+
+    def scene_spec(self, scene_id: str) -> tuple[GridSpec, FusionParams]:
+        row = self.catalog.scene(scene_id)
+        if row is None:
+            raise StoreError(f"{self.path}: holds no scene {scene_id!r}")
+        return GridSpec.from_dict(row.grid), FusionParams.from_dict(row.params)
+
+    def delete_scene(self, scene_id: str) -> None:
+        """Remove a scene and its files (waits for no writer: takes its lock)."""
+        lock_fd = _lock_scene(self.scene_path(scene_id), wait=True)
+        try:
+            self.catalog.delete_scene(scene_id)
+            shutil.rmtree(self.scene_path(scene_id) / "scene.zarr", ignore_errors=True)
+        finally:
+            os.close(lock_fd)
+        shutil.rmtree(self.scene_path(scene_id), ignore_errors=True)
+
+    def store_scan(
+        self, scene_id: str, scan_id: str, scan: Scan, name: str | None = None
+    ) -> ScanRow:
+        """Archive a scan durably, then record it as ``stored``: the acknowledgement.
+
+        Needs no writer lock: archive entries are written once under their own name.
+        """
+        _, params = self.scene_spec(scene_id)
+        if self.catalog.scan(scene_id, scan_id) is not None:
+            raise SceneConflictError(f"scan {scan_id!r} is already in the scene")
+        origin, radius = bounding_sphere(scan, params)  # NumPy only: no kernel in a request
+        archive = ScanArchive(self.scene_path(scene_id) / "scene.zarr")
+        checksum = archive.put(scan_id, scan, name)
+        try:
+            self.catalog.add_scan(scene_id, scan_id, name, origin.tolist(), radius, checksum)
+        except BaseException:
+            archive.delete(scan_id)
+            raise
+        row = self.catalog.scan(scene_id, scan_id)
+        assert row is not None
+        return row
+
+    def cleanup_uploads(self, scene_id: str) -> dict[str, int]:
+        """Delete archive entries that were never acknowledged (a kill between the archive
+        write and the catalog row). Only while no upload to the scene is in flight: at the
+        start of the process that uploads (the command line, the service's API process)."""
+        archive = ScanArchive(self.scene_path(scene_id) / "scene.zarr")
+        report = {"temporaries": archive.remove_temporaries()}
+        known = {r.id for r in self.catalog.scans(scene_id)}
+        orphans = [s for s in archive.ids() if s not in known]
+        for scan_id in orphans:
+            archive.delete(scan_id)
+        report["orphan_scans"] = len(orphans)
+        return report
+
+    def open_scene(
+        self,
+        scene_id: str,
+        cache_mb: float = CACHE_MB,
+        runner: Runner | None = None,
+        wait: bool = False,
+    ) -> Scene:
+        """Take the scene's writer lock (waiting for it with ``wait``), recover the scene and
+        return it for fusion and removal."""
+        grid, params = self.scene_spec(scene_id)
+        lock_fd = _lock_scene(self.scene_path(scene_id), wait=wait)
+        from .scene import Scene
+
+        try:
+            return Scene(self, scene_id, grid, params, cache_mb, runner, lock_fd)
+        except BaseException:
+            os.close(lock_fd)
+            raise
+
+
+def _lock_scene(folder: Path, wait: bool) -> int:
+    folder.mkdir(parents=True, exist_ok=True)
+    lock_fd = os.open(folder / "lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(lock_fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+    except BlockingIOError:
+        holder = os.pread(lock_fd, 32, 0).decode(errors="replace").strip() or "?"
+        os.close(lock_fd)
+        raise StoreLockedError(
+            f"{folder}: the scene is being written by another rangefuse process "
+            f"(pid {holder}); one writer at a time"
+        ) from None
+    os.ftruncate(lock_fd, 0)
+    os.pwrite(lock_fd, f"{os.getpid()}\n".encode(), 0)
+    return lock_fd
+
+
+def _write_marker(path: Path) -> None:
+    """Write the layout marker durably (last, when a store is created)."""
+    tmp = path / f".{_MARKER}.tmp"
+    tmp.write_text(json.dumps({"format": "rangefuse-store", "version": STORE_VERSION}))
+    with open(tmp, "rb") as fh:
+        os.fsync(fh.fileno())
+    os.replace(tmp, path / _MARKER)
+    _fsync_dir(path)
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def open_store(
+    path: str | os.PathLike[str],
+    grid: GridSpec | None = None,
+    params: FusionParams | None = None,
+    *,
+    scene_id: str = DEFAULT_SCENE,
+    cache_mb: float = CACHE_MB,
+    runner: Runner | None = None,
+) -> Scene:
+    """Open (and recover) a scene of a store for writing, creating the store and the scene
+    when ``grid`` and ``params`` are given and they do not exist yet (the command line).
+
+    The returned scene owns the store: closing it closes both.
+
+    Raises
+    ------
+    StoreError
+        Not a store, another layout version (:class:`StoreVersionError`), the scene written
+        by another process (:class:`StoreLockedError`), or ``grid``/``params`` that
+        disagree with the existing scene (:class:`SceneConflictError`).
+    """
+    path = Path(path)
+    store = Store.open(path, create=grid is not None)
+    try:
+        row = store.catalog.scene(scene_id)
+        if row is None:
+            if grid is None or params is None:
+                raise StoreError(f"{path}: holds no scene {scene_id!r}")
+            store.create_scene(scene_id, grid, params)
+        else:
+            _check_same(path, "grid", row.grid, grid)
+            _check_same(path, "fusion parameters", row.params, params)
+        scene = store.open_scene(scene_id, cache_mb, runner)
+        scene.owns_store = True
+        scene.recovered.update(store.cleanup_uploads(scene_id))
+        return scene
+    except BaseException:
+        store.close()
+        raise
+
+
+def _check_same(path: Path, what: str, stored: dict[str, Any], given: Any) -> None:
+    if given is None:
+        return
+    wanted = given.to_dict()
+    stored = type(given).from_dict(stored).to_dict()  # a store may use legacy names
+    diff = [k for k in sorted(set(stored) | set(wanted)) if stored.get(k) != wanted.get(k)]
+    if diff:
+        details = ", ".join(
+            f"{k}: store has {stored.get(k)!r}, given {wanted.get(k)!r}" for k in diff
+        )
+        raise SceneConflictError(
+            f"{path}: the scene was created with other {what} ({details}); use the store's "
+            "parameters or a new store"
+        )

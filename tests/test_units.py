@@ -1,0 +1,133 @@
+"""Units of work that can run again (docs/storage.md): a unit killed at any point, then run
+again alone, gives the bits of a run that was never interrupted, without the recovery that
+opening a store does."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
+from rangefuse.engine.synth import make_dataset
+from rangefuse.storage.scene import SceneReport
+from rangefuse.storage.store import open_store
+from rangefuse.storage.units import InProcess, integrate_unit
+
+H = 0.04
+PARAMS = FusionParams(NoiseModel(eps=2 * H, rho=0.05))
+GRID = GridSpec(H, 8, "mapping")
+#: A cache of a few tiles: the unit stages tiles all along, not only at its end.
+CACHE_MB = 0.02
+TRIALS = 20
+
+_CHILD = """
+import pickle, sys
+from rangefuse.storage.units import integrate_unit
+unit = pickle.load(open(sys.argv[1], "rb"))
+print("start", flush=True)
+integrate_unit(unit)
+print("done", flush=True)
+"""
+
+
+def _base_store(tmp_path: Path, data) -> Path:
+    """A store with the first 3 scans fused and the other 3 acknowledged, not fused."""
+    path = tmp_path / "base"
+    with open_store(path, GRID, PARAMS, cache_mb=CACHE_MB) as scene:
+        for item in data.scans[:3]:
+            scene.store_scan(*item)
+        scene.integrate_pending()
+        for item in data.scans[3:]:
+            scene.store_scan(*item)
+    return path
+
+
+def _run_child(unit_file: Path, kill_after: float | None) -> tuple[int, float]:
+    """Run the unit in a fresh process; kill -9 it ``kill_after`` seconds after it starts
+    the unit. Returns its exit status and how long the unit ran."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _CHILD, str(unit_file)], stdout=subprocess.PIPE, text=True,
+        env=env,
+    )  # fmt: skip
+    assert proc.stdout is not None
+    assert proc.stdout.readline().strip() == "start"  # imports done, the unit begins
+    t0 = time.perf_counter()
+    if kill_after is not None:
+        time.sleep(kill_after)
+        proc.send_signal(signal.SIGKILL)
+    proc.communicate()
+    return proc.returncode, time.perf_counter() - t0
+
+
+@pytest.mark.slow
+def test_a_unit_killed_at_random_points_and_run_again_alone_gives_the_same_bits(tmp_path):
+    data = make_dataset("room", views=6)
+    expected = Volume(GRID, PARAMS)
+    expected.add_many(data.scans)
+    want = expected.to_dense()
+    base = _base_store(tmp_path, data)
+    # how long the group's unit runs, uninterrupted, in a process of its own
+    with open_store(base, cache_mb=CACHE_MB) as scene:
+        ids = [r.id for r in scene.scan_rows(("stored",))]
+        (unit,) = scene._group_work(ids).units
+    unit_file = tmp_path / "unit.pickle"
+    unit_file.write_bytes(pickle.dumps(unit))
+    status, unit_s = _run_child(unit_file, None)
+    assert status == 0
+    shutil.rmtree(base / "scenes" / "default" / "staging")
+    rng = random.Random(11)
+    mid_write = 0  # kills that left some of the unit's tiles staged
+    for trial in range(TRIALS):
+        store = tmp_path / f"trial{trial}"
+        shutil.copytree(base, store)
+        with open_store(store, cache_mb=CACHE_MB) as scene:
+            work = scene._group_work(ids)
+            (unit,) = work.units
+            unit_file.write_bytes(pickle.dumps(unit))
+            status, _ = _run_child(unit_file, rng.uniform(0.02, 1.0) * unit_s)
+            staged = len(scene.staging.staged_keys())
+            mid_write += status == -signal.SIGKILL and 0 < staged < len(unit.keys)
+            # run the unit again, alone, here: no discarding, no recovery
+            result = integrate_unit(unit)
+            scene._commit_group(work, ids, [result], SceneReport())
+            got = scene.to_dense()
+        np.testing.assert_array_equal(got.first_voxel, want.first_voxel)
+        assert np.array_equal(got.logodds, want.logodds, equal_nan=True), f"trial {trial}"
+        shutil.rmtree(store)
+    assert mid_write >= TRIALS // 4, (mid_write, unit_s)  # the kills did land mid-unit
+
+
+def test_units_split_tiles_by_key_and_give_the_same_bits_in_any_number(tmp_path):
+    """One unit or five: every staged tile in exactly one unit, and the same volume."""
+    data = make_dataset("room", views=6)
+    base = _base_store(tmp_path, data)
+    dense = []
+    for parts in (1, 5):
+        store = tmp_path / f"parts{parts}"
+        shutil.copytree(base, store)
+        with open_store(store, cache_mb=CACHE_MB, runner=_Workers(parts)) as scene:
+            ids = [r.id for r in scene.scan_rows(("stored",))]
+            work = scene._group_work(ids)
+            assert len(work.units) == parts
+            keys = np.concatenate([u.keys for u in work.units])
+            assert len(keys) == len(work.written) == len(np.unique(keys, axis=0))
+            scene._commit_group(work, ids, scene._run(work.units), SceneReport())
+            dense.append(scene.to_dense())
+    assert np.array_equal(dense[0].logodds, dense[1].logodds, equal_nan=True)
+
+
+class _Workers(InProcess):
+    """Units run here, one after the other, split as for ``workers`` workers."""
+
+    def __init__(self, workers: int) -> None:
+        self.workers = workers
