@@ -28,11 +28,16 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], object], fsync: bool = 
         Path(tmp).unlink(missing_ok=True)
         raise
     if fsync:
-        dir_fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
+        fsync_path(path.parent)
+
+
+def fsync_path(path: Path) -> None:
+    """fsync a file or a folder (a folder: its entries, created, renamed or deleted)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _read_umask() -> int:

@@ -30,6 +30,8 @@ import zarr.codecs
 from rangefuse.engine import InvalidInputError, NoiseModel, Scan, Sensor, sensor_from_dict
 from zarr.storage import LocalStore
 
+from ._files import fsync_path
+
 __all__ = ["SCANS_GROUP", "ArchiveError", "ScanArchive", "check_scan_id", "scan_checksum"]
 
 #: Name of the archive group inside a scene's group.
@@ -96,20 +98,12 @@ def scan_checksum(scan: Scan) -> str:
     return _checksum(scan.range_m, scan.T_W_S, scan.sensor.to_dict(), noise)
 
 
-def _fsync_path(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _fsync_tree(root: Path) -> None:
     """fsync every file and folder under ``root`` (folders after their contents)."""
     for folder, _, files in os.walk(root, topdown=False):
         for name in files:
-            _fsync_path(Path(folder) / name)
-        _fsync_path(Path(folder))
+            fsync_path(Path(folder) / name)
+        fsync_path(Path(folder))
 
 
 class ScanArchive:
@@ -137,9 +131,9 @@ class ScanArchive:
         scene = zarr.open_group(LocalStore(self.group_path), mode="a", zarr_format=3)
         scene.require_group(SCANS_GROUP)
         for path in (self.path / "zarr.json", self.group_path / "zarr.json"):
-            _fsync_path(path)
+            fsync_path(path)
         for folder in {self.path, self.group_path, *(d.parent for d in new_dirs)}:
-            _fsync_path(folder)
+            fsync_path(folder)
 
     # --- writing -----------------------------------------------------------------------------
     def put(self, scan_id: str, scan: Scan, name: str | None = None) -> str:
@@ -193,7 +187,7 @@ class ScanArchive:
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
-        _fsync_path(self.path)
+        fsync_path(self.path)
         return checksum
 
     # --- reading -----------------------------------------------------------------------------
@@ -291,9 +285,9 @@ class ScanArchive:
             return
         doomed = self.path / f"{TMP_PREFIX}{scan_id}-{secrets.token_hex(8)}"
         os.rename(path, doomed)
-        _fsync_path(self.path)
+        fsync_path(self.path)
         shutil.rmtree(doomed)
-        _fsync_path(self.path)
+        fsync_path(self.path)
 
     def remove_temporaries(self) -> int:
         """Delete the ``.tmp-*`` folders of killed puts and deletes; returns how many.
@@ -314,5 +308,5 @@ class ScanArchive:
                         os.unlink(entry.path)
                 removed += 1
         if removed:
-            _fsync_path(self.path)
+            fsync_path(self.path)
         return removed

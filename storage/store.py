@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 from rangefuse.engine import FusionParams, GridSpec, Scan
 from rangefuse.engine.classify import bounding_sphere
 
+from ._files import fsync_path
 from .archive import ScanArchive
 from .catalog import Catalog, ScanRow
 from .zarr_tiles import ZarrTiles
@@ -242,15 +243,7 @@ def _write_marker(path: Path) -> None:
     with open(tmp, "rb") as fh:
         os.fsync(fh.fileno())
     os.replace(tmp, path / _MARKER)
-    _fsync_dir(path)
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    fsync_path(path)
 
 
 def open_store(

@@ -37,6 +37,8 @@ from rangefuse.engine.grid import KEY_LIMIT, unique_keys
 from zarr.core.buffer import default_buffer_prototype
 from zarr.storage import LocalStore
 
+from ._files import fsync_path
+
 __all__ = ["TILES_ARRAY", "TileArrayError", "ZarrTiles"]
 
 #: Name of the tile array inside a scene's group.
@@ -73,14 +75,6 @@ def _syncfs(path: Path) -> bool:
     fd = os.open(path, os.O_RDONLY)
     try:
         return int(syncfs(fd)) == 0
-    finally:
-        os.close(fd)
-
-
-def _fsync_path(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
     finally:
         os.close(fd)
 
@@ -143,7 +137,7 @@ class ZarrTiles:
             group_path,
             *(d.parent for d in new_dirs),
         ):
-            _fsync_path(path)
+            fsync_path(path)
         return cls(group_path, array, T, ZSTD_LEVEL)
 
     @classmethod
@@ -354,7 +348,7 @@ def fsync_paths(root: Path, names: list[str]) -> None:
             folders.add("/".join(parts[:depth]))
     for folder in sorted(folders, key=len, reverse=True):  # deepest first
         with contextlib.suppress(FileNotFoundError, NotADirectoryError):
-            _fsync_path(root / folder)
+            fsync_path(root / folder)
 
 
 def stored_chunk_keys(folder: Path) -> np.ndarray:
