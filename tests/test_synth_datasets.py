@@ -16,32 +16,14 @@ from rangefuse.engine.synth import (
     parse_noise,
 )
 
+from tests.synth_helpers import surface_points
+
 # --- fixtures: one small dataset per scene, the room's full loop -------------------------------
-
-
-@pytest.fixture(scope="module")
-def datasets() -> dict[str, SyntheticDataset]:
-    return {
-        "object": make_dataset("object", views=3),
-        "room": make_dataset("room", views=3),
-        "street": make_dataset("street", views=2),
-    }
 
 
 @pytest.fixture(scope="module")
 def room_loop() -> SyntheticDataset:
     return make_dataset("room")
-
-
-def to_world(T: np.ndarray, p_S: np.ndarray) -> np.ndarray:
-    return p_S @ T[:3, :3].T + T[:3, 3]
-
-
-def surface_points(scan: Scan) -> np.ndarray:
-    """World points of the finite pixels, unprojected in the sensor's range convention."""
-    v, u = np.nonzero(np.isfinite(scan.range_m))
-    p_S = scan.sensor.unproject(u, v, scan.range_m[v, u].astype(np.float64))
-    return to_world(scan.T_W_S, p_S)
 
 
 # --- the three scenes --------------------------------------------------------------------------

@@ -14,7 +14,6 @@ from rangefuse.engine import (
     InvalidInputError,
     OrthographicSensor,
     PinholeSensor,
-    Scan,
     SphericalSensor,
 )
 from rangefuse.engine.synth import (
@@ -22,31 +21,12 @@ from rangefuse.engine.synth import (
     AnalyticScene,
     SceneBuilder,
     SyntheticDataset,
-    make_dataset,
     render,
 )
 
+from tests.synth_helpers import surface_points, to_world
+
 # --- fixtures: one small dataset per scene -----------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def datasets() -> dict[str, SyntheticDataset]:
-    return {
-        "object": make_dataset("object", views=3),
-        "room": make_dataset("room", views=3),
-        "street": make_dataset("street", views=2),
-    }
-
-
-def to_world(T: np.ndarray, p_S: np.ndarray) -> np.ndarray:
-    return p_S @ T[:3, :3].T + T[:3, 3]
-
-
-def surface_points(scan: Scan) -> np.ndarray:
-    """World points of the finite pixels, unprojected in the sensor's range convention."""
-    v, u = np.nonzero(np.isfinite(scan.range_m))
-    p_S = scan.sensor.unproject(u, v, scan.range_m[v, u].astype(np.float64))
-    return to_world(scan.T_W_S, p_S)
 
 
 def random_unit(rng: np.random.Generator, n: int) -> np.ndarray:
