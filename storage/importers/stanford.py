@@ -154,6 +154,52 @@ def _resample_azimuth(
     return out
 
 
+def _column_pitch(
+    points: np.ndarray, rows: np.ndarray, cols: np.ndarray, where: str
+) -> tuple[float, float, bool]:
+    """The grid's column pitch and first x, measured from the points (x steps linearly with
+    the column), and whether odd rows are shifted by half a pitch (interlaced)."""
+    A = np.stack([cols, rows % 2, np.ones_like(cols)], axis=1).astype(np.float64)
+    (pitch, shift, x0), *_ = np.linalg.lstsq(A, points[:, 0], rcond=None)
+    residual = float(np.max(np.abs(A @ (pitch, shift, x0) - points[:, 0])))
+    if not pitch > 0.0 or residual > _PITCH_TOLERANCE * pitch:
+        raise SourceError(
+            f"{where}: x does not step linearly with the grid column (pitch {pitch * 1e3:.4g} mm, "
+            f"residual {residual * 1e3:.3g} mm): not a line-scan range grid"
+        )
+    if abs(shift - pitch / 2) <= _PITCH_TOLERANCE * pitch:
+        return pitch, x0, True
+    if abs(shift) <= _PITCH_TOLERANCE * pitch:
+        return pitch, x0, False
+    raise SourceError(
+        f"{where}: odd rows are shifted by {shift * 1e3:.4g} mm, neither 0 nor half the "
+        f"column pitch ({pitch * 1e3:.4g} mm)"
+    )
+
+
+def _fan(
+    points: np.ndarray, rows: np.ndarray, ay: float, az: float, where: str
+) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+    """Each point's angle about the axis and distance from it, the row angles' fit
+    ``theta = alpha + beta * row``, and the sign that makes the angle grow with the row."""
+    sign = 1.0
+    x_S = az - points[:, 2]
+    if np.median(x_S) <= 0.0:
+        raise SourceError(
+            f"{where}: the points are not in front of (below z = {az:g}) the scanner axis "
+            f"(y, z) = ({ay:g}, {az:g}); wrong axis?"
+        )
+    theta = np.arctan2(points[:, 1] - ay, x_S)
+    rho = np.hypot(points[:, 1] - ay, x_S)
+    alpha, beta = np.polynomial.polynomial.polyfit(rows.astype(np.float64), theta, 1)
+    if beta < 0.0:  # turn the sensor frame half a turn about its x axis: azimuth grows
+        sign = -1.0
+        theta, alpha, beta = -theta, -alpha, -beta
+    if not beta > 0.0:
+        raise SourceError(f"{where}: the rows do not fan out around the axis")
+    return theta, rho, float(alpha), float(beta), sign
+
+
 def linescan_image(
     points: np.ndarray,
     rows: np.ndarray,
@@ -196,47 +242,14 @@ def linescan_image(
     """
     if len(points) < 3:
         raise SourceError(f"{where}: fewer than 3 samples in the range grid")
-    A = np.stack([cols, rows % 2, np.ones_like(cols)], axis=1).astype(np.float64)
-    (pitch, shift, x0), *_ = np.linalg.lstsq(A, points[:, 0], rcond=None)
-    residual = float(np.max(np.abs(A @ (pitch, shift, x0) - points[:, 0])))
-    if not pitch > 0.0 or residual > _PITCH_TOLERANCE * pitch:
-        raise SourceError(
-            f"{where}: x does not step linearly with the grid column (pitch {pitch * 1e3:.4g} mm, "
-            f"residual {residual * 1e3:.3g} mm): not a line-scan range grid"
-        )
-    if abs(shift - pitch / 2) <= _PITCH_TOLERANCE * pitch:
-        interlaced = True
-        step = pitch / 2
-        k = 2 * cols + rows % 2
-        n_fine = 2 * num_cols
-    elif abs(shift) <= _PITCH_TOLERANCE * pitch:
-        interlaced = False
-        step = pitch
-        k = cols
-        n_fine = num_cols
-    else:
-        raise SourceError(
-            f"{where}: odd rows are shifted by {shift * 1e3:.4g} mm, neither 0 nor half the "
-            f"column pitch ({pitch * 1e3:.4g} mm)"
-        )
+    pitch, x0, interlaced = _column_pitch(points, rows, cols, where)
+    step = pitch / 2 if interlaced else pitch
+    k = 2 * cols + rows % 2 if interlaced else cols
+    n_fine = 2 * num_cols if interlaced else num_cols
     if max_step_m is None:
         max_step_m = STANFORD_MAX_STEP_PITCHES * pitch
     ay, az = axis_yz_m
-    sign = 1.0
-    x_S = az - points[:, 2]
-    if np.median(x_S) <= 0.0:
-        raise SourceError(
-            f"{where}: the points are not in front of (below z = {az:g}) the scanner axis "
-            f"(y, z) = ({ay:g}, {az:g}); wrong axis?"
-        )
-    theta = np.arctan2(points[:, 1] - ay, x_S)
-    rho = np.hypot(points[:, 1] - ay, x_S)
-    alpha, beta = np.polynomial.polynomial.polyfit(rows.astype(np.float64), theta, 1)
-    if beta < 0.0:  # turn the sensor frame half a turn about its x axis: azimuth grows
-        sign = -1.0
-        theta, alpha, beta = -theta, -alpha, -beta
-    if not beta > 0.0:
-        raise SourceError(f"{where}: the rows do not fan out around the axis")
+    theta, rho, alpha, beta, sign = _fan(points, rows, ay, az, where)
     theta_grid = np.full((n_fine, num_rows), np.nan)
     rho_grid = np.full((n_fine, num_rows), np.nan)
     theta_grid[k, rows] = theta
