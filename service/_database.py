@@ -22,41 +22,59 @@ __all__ = ["Database"]
 
 
 class Database:
-    """One SQLite connection that threads share (each use holds a lock)."""
+    """The SQLite file at ``path`` with ``schema`` created; one connection per thread.
+
+    Each thread that uses it opens its own connection on first use (as each thread of the
+    API has its own :class:`~storage.Store`), so that readers never wait behind a writer
+    (WAL) and no connection is shared between threads.
+    """
 
     def __init__(self, path: Path, schema: str) -> None:
         self.path = Path(path)
-        self._lock = threading.RLock()
-        self._db = sqlite3.connect(
-            self.path, isolation_level=None, timeout=30.0, check_same_thread=False
-        )
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=FULL")
-        self._db.executescript(schema)
+        self._local = threading.local()
+        self._opened: list[sqlite3.Connection] = []
+        self._opened_lock = threading.Lock()
+        self._connection().executescript(schema)
+
+    def _connection(self) -> sqlite3.Connection:
+        db: sqlite3.Connection | None = getattr(self._local, "db", None)
+        if db is None:
+            # check_same_thread=False only so that close() may close every thread's
+            db = sqlite3.connect(
+                self.path, isolation_level=None, timeout=30.0, check_same_thread=False
+            )
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute("PRAGMA synchronous=FULL")
+            self._local.db = db
+            with self._opened_lock:
+                self._opened.append(db)
+        return db
 
     def close(self) -> None:
-        with self._lock:
-            self._db.close()
+        """Close the connections of every thread."""
+        with self._opened_lock:
+            for db in self._opened:
+                db.close()
+            self._opened.clear()
+        self._local = threading.local()
 
     def rows(self, sql: str, args: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
         """All rows of a query."""
-        with self._lock:
-            return self._db.execute(sql, args).fetchall()
+        return self._connection().execute(sql, args).fetchall()
 
     def run(self, sql: str, args: tuple[Any, ...] = ()) -> int:
         """Execute a statement; the number of rows it changed."""
-        with self._lock:
-            return int(self._db.execute(sql, args).rowcount)
+        return int(self._connection().execute(sql, args).rowcount)
 
     @contextmanager
     def transaction(self) -> Iterator[None]:
-        """Everything this thread does inside commits together (other threads wait)."""
-        with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
-                yield
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            else:
-                self._db.execute("COMMIT")
+        """Everything this thread does inside commits together (not nested)."""
+        db = self._connection()
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            yield
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        else:
+            db.execute("COMMIT")

@@ -81,7 +81,7 @@ def test_meshes(db_path: Path) -> None:
         assert queue.mesh("scene1") is None
 
 
-def test_threads_share_one_connection(db_path: Path) -> None:
+def test_threads_create_jobs_concurrently(db_path: Path) -> None:
     with JobQueue(db_path) as queue:
 
         def create(n: int) -> None:

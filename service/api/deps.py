@@ -9,7 +9,7 @@ A :class:`~storage.Store` holds an SQLite connection that only the thread that o
 may use, and FastAPI runs each synchronous dependency and route in any thread of its pool;
 so ``StoreDep`` is a function that returns *this thread's* store (opened on first use), to
 be called where it is used: ``store().catalog.scene(...)``. The accounts and the job queue
-are shared by all threads (:mod:`service._database`).
+open a connection per thread themselves (:mod:`service._database`).
 """
 
 from __future__ import annotations
