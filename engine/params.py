@@ -247,7 +247,7 @@ def _check_bounds(value: Any) -> tuple[str, Any]:
     if len(values) != 6:
         return f"must be six numbers [x0, y0, z0, x1, y1, z1], got {len(values)}", value
     if not all(math.isfinite(x) for x in values):
-        return f"must be six finite numbers, got {value!r}", value
+        return f"must be six finite numbers, got {list(values)}", value
     return "", values
 
 
@@ -273,8 +273,7 @@ PARAMS: dict[str, Param] = {
         ),
         Param(
             "bounds", "grid", "bounds",
-            "region of interest [x0, y0, z0, x1, y1, z1], world coordinates; closed mode "
-            "needs one",
+            "region of interest [x0, y0, z0, x1, y1, z1] in world coordinates",
             unit="m", nullable=True, default_text="none",
         ),
         # noise: NoiseModel (METHOD §1)

@@ -1,4 +1,5 @@
-"""Helpers shared by the command-line modules: user errors, argument types, outputs."""
+"""Helpers shared by the command-line modules: user errors, argument types, outputs, and the
+options of the declared parameters."""
 
 from __future__ import annotations
 
@@ -8,9 +9,11 @@ import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
-from rangefuse.engine import DenseGrid
+from rangefuse.engine import DenseGrid, InvalidInputError
 from rangefuse.engine.meshing import Mesh
+from rangefuse.engine.params import Param
 from rangefuse.storage import write_grid
 from rangefuse.storage.meshes import MeshFormatError, mesh_format, write_mesh
 
@@ -47,6 +50,41 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
     return value
+
+
+def param_type(param: Param) -> Callable[[str], Any]:
+    """The argparse ``type`` of a declared number: converts, then checks it as declared
+    (``--rho: outlier probability must be in (0, 1/2), got 0.7``)."""
+    integer = param.kind == "int"
+
+    def convert(text: str) -> Any:
+        try:
+            value = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"not {'an integer' if integer else 'a number'}: {text!r}"
+            ) from None
+        try:
+            return param.validate(value)
+        except InvalidInputError as exc:
+            raise argparse.ArgumentTypeError(exc.problem) from None
+
+    convert.__name__ = param.name
+    return convert
+
+
+def add_param_option(parser: argparse.ArgumentParser, param: Param, note: str = "") -> None:
+    """``--name`` for a parameter declared in ``engine/params.py``: its type and range,
+    choices, default, and help with unit, range and default (``note`` adds a sentence)."""
+    kwargs: dict[str, Any] = {"default": param.default, "required": param.required}
+    if param.kind == "choice":
+        kwargs["choices"] = param.choices
+    elif param.kind == "bounds":  # the box as a whole is checked by GridSpec
+        kwargs.update(type=finite_float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"))
+    else:
+        kwargs.update(type=param_type(param), metavar=param.metavar)
+    kwargs["help"] = param.describe(param.metavar or None) + (f"; {note}" if note else "")
+    parser.add_argument(param.flag, **kwargs)
 
 
 def check_writable(path: Path, option: str) -> None:

@@ -17,28 +17,16 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
-from rangefuse.engine import (
-    FILTERS,
-    MODES,
-    NO_RETURN,
-    FusionParams,
-    GridSpec,
-    InvalidInputError,
-    NoiseModel,
-    Scan,
-    Volume,
-)
-from rangefuse.engine.certainty import SHAPES
-from rangefuse.engine.defaults import EPS_PER_VOXEL, RHO, TILE_SIZE_VOX
-from rangefuse.storage import DatasetError, open_dataset, write_dataset
-from rangefuse.storage.store import StoreError
+from rangefuse.engine import FusionParams, GridSpec, InvalidInputError, NoiseModel, Scan, Volume
+from rangefuse.engine.params import PARAMS, default_eps
+from rangefuse.storage import DatasetError, StoreError, open_dataset, write_dataset
 
 from ._cliutil import (
     CommandError,
     add_output_options,
+    add_param_option,
     check_outputs,
     check_writable,
-    finite_float,
     positive_float,
     positive_int,
     write_outputs,
@@ -100,8 +88,14 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 # --- fuse -------------------------------------------------------------------------------------
 
 
+#: What ``fuse`` adds to a declared parameter's help.
+_FUSE_NOTES = {
+    "bounds": "closed mode without it: the box of the measured points plus a margin",
+}
+
+
 def _noise_from_args(args: argparse.Namespace) -> NoiseModel:
-    eps = args.eps if args.eps is not None else EPS_PER_VOXEL * args.voxel_size
+    eps = args.eps if args.eps is not None else default_eps(args.voxel_size)
     return NoiseModel(
         eps=eps, eps_per_m=args.eps_per_m, rho=args.rho, falloff=args.falloff, shape=args.shape
     )
@@ -204,83 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     fuse = sub.add_parser("fuse", help="fuse a dataset folder into a volume")
     fuse.add_argument("dataset", type=Path, metavar="DATASET")
-    fuse.add_argument(
-        "--voxel-size",
-        type=positive_float,
-        required=True,
-        metavar="M",
-        help="voxel edge in metres",
-    )
-    fuse.add_argument(
-        "--bounds",
-        type=finite_float,
-        nargs=6,
-        default=None,
-        metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
-        help="region of interest in world metres (closed mode: default from the data)",
-    )
-    fuse.add_argument(
-        "--mode",
-        choices=MODES,
-        default="mapping",
-        help="mapping: tiles near surfaces, open meshes; closed: the region of "
-        "interest, closed meshes (default mapping)",
-    )
-    fuse.add_argument(
-        "--tile-size",
-        type=positive_int,
-        default=TILE_SIZE_VOX,
-        metavar="N",
-        help=f"voxels per tile edge (default {TILE_SIZE_VOX})",
-    )
-    fuse.add_argument(
-        "--eps",
-        type=positive_float,
-        default=None,
-        metavar="M",
-        help=f"noise half-width in metres (default {EPS_PER_VOXEL:g} voxels)",
-    )
-    fuse.add_argument(
-        "--eps-per-m",
-        type=float,
-        default=0.0,
-        metavar="F",
-        help="growth of the noise half-width per metre of range (default 0)",
-    )
-    fuse.add_argument(
-        "--rho",
-        type=float,
-        default=RHO,
-        metavar="P",
-        help=f"outlier probability, 0 < P < 1/2 (default {RHO})",
-    )
-    fuse.add_argument(
-        "--falloff",
-        type=positive_float,
-        default=None,
-        metavar="M",
-        help="fall-off behind the surface in metres (default: eps)",
-    )
-    fuse.add_argument(
-        "--shape", choices=SHAPES, default="linear", help="certainty ramp (default linear)"
-    )
-    fuse.add_argument(
-        "--filter", choices=FILTERS, default="none", help="range-map filter (default none)"
-    )
-    fuse.add_argument(
-        "--max-discontinuity",
-        type=positive_float,
-        default=None,
-        metavar="M",
-        help="ignore points whose four neighbouring ranges spread by more",
-    )
-    fuse.add_argument(
-        "--no-return",
-        choices=NO_RETURN,
-        default="free",
-        help="no-return pixels carve free space up to max_range (free, default) "
-        "or are ignored (invalid)",
-    )
+    for param in PARAMS.values():  # every fusion and grid parameter, as declared
+        add_param_option(fuse, param, _FUSE_NOTES.get(param.name, ""))
     add_output_options(fuse)
     fuse.add_argument(
         "--store",

@@ -40,18 +40,20 @@ __all__ = [
 ]
 
 
-def declared(name: str, *, response: bool = False) -> Any:
+def declared(name: str, *, response: bool = False, note: str = "") -> Any:
     """The pydantic ``Field`` of parameter ``name`` as declared in ``engine/params.py``.
 
     A request field gets the declared default (none when required); a response field
     (``response=True``) is always present and gets only the description and schema.
+    ``note`` adds a sentence to the description.
     """
     param = PARAMS[name]
     extra = param.json_schema()
+    description = param.describe() + (f"; {note}" if note else "")
     if response:
-        return Field(description=param.describe(), json_schema_extra=extra)
+        return Field(description=description, json_schema_extra=extra)
     default = ... if param.required else param.default
-    return Field(default=default, description=param.describe(), json_schema_extra=extra)
+    return Field(default=default, description=description, json_schema_extra=extra)
 
 
 # --- requests ---------------------------------------------------------------------------------
@@ -76,7 +78,7 @@ class SceneIn(BaseModel):
     voxel_size: float = declared("voxel_size")
     tile_size: int = declared("tile_size")
     mode: str = declared("mode")
-    bounds: list[float] | None = declared("bounds")
+    bounds: list[float] | None = declared("bounds", note="closed mode needs one")
     noise: NoiseIn | None = Field(default=None, description="noise model (defaults as below)")
     filter: str = declared("filter")
     max_discontinuity: float | None = declared("max_discontinuity")
