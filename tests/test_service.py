@@ -9,6 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -40,6 +41,7 @@ class Server:
         self.max_upload_mb = max_upload_mb
         self.token = ""
         self.proc: subprocess.Popen[str] | None = None
+        self.lines: list[str] = []  # everything the server printed
 
     def start(self) -> Server:
         env = {
@@ -65,9 +67,11 @@ class Server:
             text=True,
             start_new_session=True,  # kill() takes the worker processes down too
         )
+        # read the output as it comes: a server whose pipe is full blocks on its next log line
+        threading.Thread(target=self._drain, args=(self.proc.stdout,), daemon=True).start()
         deadline = time.time() + 60
         while time.time() < deadline:
-            assert self.proc.poll() is None, self.proc.stdout.read() if self.proc.stdout else ""
+            assert self.proc.poll() is None, "".join(self.lines)
             try:
                 if httpx.get(f"{self.url}/healthz", timeout=1).status_code == 200:
                     return self
@@ -79,13 +83,18 @@ class Server:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
+    def _drain(self, stream) -> None:
+        for line in stream:
+            self.lines.append(line)
+
     def read_token(self) -> str:
-        assert self.proc is not None and self.proc.stdout is not None
-        for _ in range(50):
-            line = self.proc.stdout.readline()
-            if "created a token" in line:
-                return line.rsplit(" ", 1)[1].strip()
-        raise AssertionError("no token printed")
+        deadline = time.time() + 30
+        while time.time() < deadline:
+            for line in list(self.lines):
+                if "created a token" in line:
+                    return line.rsplit(" ", 1)[1].strip()
+            time.sleep(0.05)
+        raise AssertionError("no token printed:\n" + "".join(self.lines))
 
     def kill(self) -> None:
         """kill -9 the server and its worker processes."""
