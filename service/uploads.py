@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 from rangefuse.engine import InvalidInputError, NoiseModel, Scan, sensor_from_dict
+from rangefuse.engine.params import params_of
 from rangefuse.storage import DatasetError
 from rangefuse.storage.dataset import read_scan_file
 from rangefuse.storage.importers import decode_png
@@ -98,22 +99,17 @@ def decode_scan(range_bytes: bytes, meta_bytes: bytes) -> UploadedScan:
 
 
 def _noise(data: Any) -> NoiseModel:
+    """A scan's own noise model (``meta.noise``): the declared noise parameters, ``eps``
+    required."""
     if not isinstance(data, dict):
         raise UploadError("meta.noise: must be an object")
-    mapping = {"eps": "eps", "eps_per_m": "eps_per_m", "rho": "rho", "falloff": "falloff"}
-    kwargs: dict[str, Any] = {}
-    for key, value in data.items():
-        if key == "shape":
-            kwargs["shape"] = value
-        elif key in mapping:
-            kwargs[mapping[key]] = value
-        else:
-            raise UploadError(
-                f"meta.noise.{key}: unknown (known: eps, eps_per_m, rho, falloff, shape)"
-            )
-    if "eps" not in kwargs:
+    known = [p.name for p in params_of("noise")]
+    for key in data:
+        if key not in known:
+            raise UploadError(f"meta.noise.{key}: unknown (known: {', '.join(known)})")
+    if "eps" not in data:
         raise UploadError("meta.noise.eps: missing")
-    return NoiseModel(**kwargs)
+    return NoiseModel(**data)
 
 
 def _npy(data: bytes) -> np.ndarray:

@@ -7,6 +7,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, HTTPException, Request
 from fastapi.concurrency import run_in_threadpool
+from rangefuse.engine.params import params_of
 from starlette.requests import ClientDisconnect
 
 from ...accounts import Accounts
@@ -33,6 +34,7 @@ router = APIRouter(
     prefix="/v1/scenes/{scene_id}/scans", tags=["scans"], responses=problems(401, 404, 422)
 )
 
+_NOISE = ", ".join(p.name for p in params_of("noise"))
 _MULTIPART = {
     "required": True,
     "content": {
@@ -50,8 +52,7 @@ _MULTIPART = {
                     "meta": {
                         "type": "string",
                         "description": "JSON: pose (4x4 sensor to world), sensor, and "
-                        "optionally name, noise {eps, eps_per_m, rho, falloff, shape}, "
-                        "depth_scale",
+                        f"optionally name, noise {{{_NOISE}}}, depth_scale",
                     },
                 },
             }
