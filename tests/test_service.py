@@ -251,8 +251,9 @@ def test_idempotency_key_never_creates_a_second_scan(client, object_data):
 
 
 def _bad_cases(scan):
+    """``{case: (multipart files, status, words of the answer)}``: every one a 400."""
     good_meta = _meta(scan)
-    rng = scan.range_m
+    good = _npy(scan.range_m)
     pose_nan = scan.T_W_S.copy()
     pose_nan[0, 3] = np.nan
     scaled = scan.T_W_S.copy()
@@ -260,111 +261,38 @@ def _bad_cases(scan):
     pickled = io.BytesIO()
     np.save(pickled, np.array([{"a": 1}], dtype=object), allow_pickle=True)
     sensor = scan.sensor.to_dict()
-    return {
-        "no range part": ({"meta": (None, good_meta)}, 400, "range: missing part"),
-        "no meta part": ({"range": ("r.npy", _npy(rng))}, 400, "meta: missing part"),
-        "meta not json": (
-            {"range": ("r.npy", _npy(rng)), "meta": (None, "{")},
-            400,
-            "meta: not valid JSON",
-        ),
-        "not an array": (
-            {"range": ("r.npy", b"hello world"), "meta": (None, good_meta)},
-            400,
-            "range: not a .npy",
-        ),
-        "integer array": (
-            {"range": ("r.npy", _npy(np.ones((480, 640), np.int32))), "meta": (None, good_meta)},
-            400,
-            "float32",
-        ),
-        "pickled npy": (
-            {"range": ("r.npy", pickled.getvalue()), "meta": (None, good_meta)},
-            400,
-            "pickled",
-        ),
-        "truncated npy": (
-            {"range": ("r.npy", _npy(rng)[:5000]), "meta": (None, good_meta)},
-            400,
-            "range",
-        ),
-        "nan pose": (
-            {
-                "range": ("r.npy", _npy(rng)),
-                "meta": (
-                    None,
-                    json.dumps(
-                        {"pose": np.nan_to_num(pose_nan, nan=1e400).tolist(), "sensor": sensor}
-                    ),
-                ),
-            },
-            400,
-            "pose",
-        ),
-        "non-rigid pose": (
-            {
-                "range": ("r.npy", _npy(rng)),
-                "meta": (None, json.dumps({"pose": scaled.tolist(), "sensor": sensor})),
-            },
-            400,
-            "pose",
-        ),
-        "pose not 4x4": (
-            {
-                "range": ("r.npy", _npy(rng)),
-                "meta": (None, json.dumps({"pose": [[1, 0], [0, 1]], "sensor": sensor})),
-            },
-            400,
-            "pose",
-        ),
-        "wrong shape": (
-            {"range": ("r.npy", _npy(rng[:100])), "meta": (None, good_meta)},
-            400,
-            "does not match the sensor",
-        ),
+
+    def parts(range_bytes: bytes = good, meta: str = good_meta, filename: str = "r.npy") -> dict:
+        return {"range": (filename, range_bytes), "meta": (None, meta)}
+
+    def posed(pose: list, **sensor_changes) -> str:
+        return json.dumps({"pose": pose, "sensor": {**sensor, **sensor_changes}})
+
+    cases = {
+        "no range part": ({"meta": (None, good_meta)}, "range: missing part"),
+        "no meta part": ({"range": ("r.npy", good)}, "meta: missing part"),
+        "meta not json": (parts(meta="{"), "meta: not valid JSON"),
+        "not an array": (parts(b"hello world"), "range: not a .npy"),
+        "integer array": (parts(_npy(np.ones((480, 640), np.int32))), "float32"),
+        "pickled npy": (parts(pickled.getvalue()), "pickled"),
+        "truncated npy": (parts(good[:5000]), "range"),
+        "nan pose": (parts(meta=posed(np.nan_to_num(pose_nan, nan=1e400).tolist())), "pose"),
+        "non-rigid pose": (parts(meta=posed(scaled.tolist())), "pose"),
+        "pose not 4x4": (parts(meta=posed([[1, 0], [0, 1]])), "pose"),
+        "wrong shape": (parts(_npy(scan.range_m[:100])), "does not match the sensor"),
         "unknown sensor": (
-            {
-                "range": ("r.npy", _npy(rng)),
-                "meta": (
-                    None,
-                    json.dumps(
-                        {"pose": scan.T_W_S.tolist(), "sensor": {**sensor, "model": "fisheye"}}
-                    ),
-                ),
-            },
-            400,
+            parts(meta=posed(scan.T_W_S.tolist(), model="fisheye")),
             "unknown sensor model",
         ),
-        "absurd sensor": (
-            {
-                "range": ("r.npy", _npy(rng)),
-                "meta": (
-                    None,
-                    json.dumps({"pose": scan.T_W_S.tolist(), "sensor": {**sensor, "fx": -5}}),
-                ),
-            },
-            400,
-            "sensor.fx",
-        ),
-        "negative noise": (
-            {"range": ("r.npy", _npy(rng)), "meta": (None, _meta(scan, noise={"eps": -1}))},
-            400,
-            "eps",
-        ),
-        "unknown meta field": (
-            {"range": ("r.npy", _npy(rng)), "meta": (None, _meta(scan, colour=1))},
-            400,
-            "meta.colour",
-        ),
+        "absurd sensor": (parts(meta=posed(scan.T_W_S.tolist(), fx=-5)), "sensor.fx"),
+        "negative noise": (parts(meta=_meta(scan, noise={"eps": -1})), "eps"),
+        "unknown meta field": (parts(meta=_meta(scan, colour=1)), "meta.colour"),
         "png without scale": (
-            {
-                "range": ("d.png", encode_png(np.ones((480, 640), np.uint16))),
-                "meta": (None, good_meta),
-            },
-            400,
+            parts(encode_png(np.ones((480, 640), np.uint16)), filename="d.png"),
             "depth_scale",
         ),
     }
+    return {name: (files, 400, words) for name, (files, words) in cases.items()}
 
 
 def test_bad_uploads_are_refused_and_nothing_is_stored(client, object_data):
