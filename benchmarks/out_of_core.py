@@ -27,7 +27,7 @@ def _child(cfg: dict) -> dict:
     from rangefuse.engine import FusionParams, GridSpec, NoiseModel
     from rangefuse.engine.synth import make_dataset
     from rangefuse.service.runners import ProcessRunner
-    from rangefuse.storage.store import open_store
+    from rangefuse.storage import open_store
     from rangefuse.storage.units import InProcess
 
     h = cfg["voxel"]

@@ -47,7 +47,7 @@ def main() -> None:
     sys.path.insert(0, str(ROOT))
     from rangefuse.engine import Volume
     from rangefuse.engine.synth import make_dataset
-    from rangefuse.storage import Store
+    from rangefuse.storage import Store, open_scene
 
     data = make_dataset("object", views=per)
     payloads = []
@@ -121,7 +121,7 @@ def main() -> None:
         lat = np.array(latencies) * 1000
         ok = sum(1 for s in statuses if s == 202)
         five = sum(1 for s in statuses if s >= 500)
-        with Store.open(f"{tmp}/data") as store, store.open_scene(sid) as scene:
+        with Store.open(f"{tmp}/data") as store, open_scene(store, sid) as scene:
             served = scene.to_dense()
             grid, params = scene.grid, scene.params
         volume = Volume(grid, params)

@@ -18,8 +18,8 @@ from rangefuse.engine import FusionParams, GridSpec, Scan
 from rangefuse.engine.meshing import Mesh
 from rangefuse.storage import open_dataset
 from rangefuse.storage.dataset import read_scan_file
-from rangefuse.storage.scene import Scene
-from rangefuse.storage.store import CACHE_MB, open_store
+from rangefuse.storage.scene import Scene, open_store
+from rangefuse.storage.store import CACHE_MB
 from rangefuse.storage.units import InProcess, Runner
 
 from ._cliutil import (

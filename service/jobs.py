@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rangefuse.storage import Store
+from rangefuse.storage import Store, open_scene
 
 from .queue import JobQueue, JobRow
 from .runners import spawn_pool
@@ -53,7 +53,7 @@ def run_job(data_dir: str, job_id: str, cache_mb: float) -> dict[str, Any]:
             return {}
         t0 = time.perf_counter()
         try:
-            with store.open_scene(job.scene_id, cache_mb, wait=True) as scene:
+            with open_scene(store, job.scene_id, cache_mb, wait=True) as scene:
 
                 def progress(done: int, total: int) -> None:
                     queue.update_job(job_id, progress=done / max(total, 1))

@@ -12,14 +12,13 @@ from .dataset import (
     write_scan_file,
 )
 from .grids import read_grid, write_grid
-from .scene import Scene
+from .scene import Scene, open_scene, open_store
 from .store import (
     SceneConflictError,
     Store,
     StoreError,
     StoreLockedError,
     StoreVersionError,
-    open_store,
 )
 from .tile_store import ZarrTileStore
 from .zarr_tiles import TileArrayError, ZarrTiles
@@ -41,6 +40,7 @@ __all__ = [
     "ZarrTileStore",
     "ZarrTiles",
     "open_dataset",
+    "open_scene",
     "open_store",
     "read_grid",
     "read_scan_file",

@@ -25,6 +25,7 @@ import os
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -54,13 +55,20 @@ from .archive import ScanArchive
 from .catalog import ScanRow
 from .mesh_cache import MeshCache
 from .staging import Staging
-from .store import STORE_VERSION, Store
+from .store import (
+    CACHE_MB,
+    DEFAULT_SCENE,
+    STORE_VERSION,
+    Store,
+    StoreError,
+    check_same,
+)
 from .tile_cache import cache_tiles
 from .tile_store import ZarrTileStore
 from .units import InProcess, Runner, TileUnit, UnitResult, integrate_unit, make_units
 from .zarr_tiles import ZarrTiles
 
-__all__ = ["GROUP_SCANS", "Scene", "SceneReport"]
+__all__ = ["GROUP_SCANS", "Scene", "SceneReport", "open_scene", "open_store"]
 
 #: Scans integrated between two checkpoints.
 GROUP_SCANS = 8
@@ -104,8 +112,8 @@ class _Work:
 
 
 class Scene:
-    """One scene of a store; open with :func:`~storage.store.open_store` or
-    :meth:`~storage.store.Store.open_scene`, close when done.
+    """One scene of a store; open with :func:`open_store` or :func:`open_scene`, close when
+    done.
 
     Opening recovers from an interrupted run (``docs/storage.md``): the report is in
     :attr:`recovered`.
@@ -408,3 +416,62 @@ class Scene:
             "grid": self.grid.to_dict(),
             "params": self.params.to_dict(),
         }
+
+
+def open_scene(
+    store: Store,
+    scene_id: str,
+    cache_mb: float = CACHE_MB,
+    runner: Runner | None = None,
+    wait: bool = False,
+) -> Scene:
+    """Take the scene's writer lock (waiting for it with ``wait``), recover the scene and
+    return it for fusion and removal; closing it releases the lock."""
+    grid, params = store.scene_spec(scene_id)
+    lock_fd = store.lock_scene(scene_id, wait=wait)
+    try:
+        return Scene(store, scene_id, grid, params, cache_mb, runner, lock_fd)
+    except BaseException:
+        os.close(lock_fd)
+        raise
+
+
+def open_store(
+    path: str | os.PathLike[str],
+    grid: GridSpec | None = None,
+    params: FusionParams | None = None,
+    *,
+    scene_id: str = DEFAULT_SCENE,
+    cache_mb: float = CACHE_MB,
+    runner: Runner | None = None,
+) -> Scene:
+    """Open (and recover) a scene of a store for writing, creating the store and the scene
+    when ``grid`` and ``params`` are given and they do not exist yet (the command line).
+
+    The returned scene owns the store: closing it closes both.
+
+    Raises
+    ------
+    StoreError
+        Not a store, another layout version (:class:`StoreVersionError`), the scene written
+        by another process (:class:`StoreLockedError`), or ``grid``/``params`` that
+        disagree with the existing scene (:class:`SceneConflictError`).
+    """
+    path = Path(path)
+    store = Store.open(path, create=grid is not None)
+    try:
+        row = store.catalog.scene(scene_id)
+        if row is None:
+            if grid is None or params is None:
+                raise StoreError(f"{path}: holds no scene {scene_id!r}")
+            store.create_scene(scene_id, grid, params)
+        else:
+            check_same(path, "grid", row.grid, grid)
+            check_same(path, "fusion parameters", row.params, params)
+        scene = open_scene(store, scene_id, cache_mb, runner)
+        scene.owns_store = True
+        scene.recovered.update(store.cleanup_uploads(scene_id))
+        return scene
+    except BaseException:
+        store.close()
+        raise

@@ -12,7 +12,7 @@ import json
 import os
 import shutil
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from rangefuse.engine import FusionParams, GridSpec, Scan
 from rangefuse.engine.classify import bounding_sphere
@@ -21,10 +21,6 @@ from ._files import fsync_path
 from .archive import ScanArchive
 from .catalog import Catalog, ScanRow
 from .zarr_tiles import ZarrTiles
-
-if TYPE_CHECKING:
-    from .scene import Scene
-    from .units import Runner
 
 __all__ = [
     "CACHE_MB",
@@ -35,7 +31,7 @@ __all__ = [
     "StoreError",
     "StoreLockedError",
     "StoreVersionError",
-    "open_store",
+    "check_same",
 ]
 
 #: The layout this rangefuse writes. Version 1 (tiles written in place, a journal of tiles in
@@ -199,24 +195,17 @@ class Store:
         report["orphan_scans"] = len(orphans)
         return report
 
-    def open_scene(
-        self,
-        scene_id: str,
-        cache_mb: float = CACHE_MB,
-        runner: Runner | None = None,
-        wait: bool = False,
-    ) -> Scene:
-        """Take the scene's writer lock (waiting for it with ``wait``), recover the scene and
-        return it for fusion and removal."""
-        grid, params = self.scene_spec(scene_id)
-        lock_fd = _lock_scene(self.scene_path(scene_id), wait=wait)
-        from .scene import Scene
+    def lock_scene(self, scene_id: str, wait: bool = False) -> int:
+        """Take the scene's writer lock (waiting for it with ``wait``); returns the lock's
+        file descriptor, whose closing releases it.
 
-        try:
-            return Scene(self, scene_id, grid, params, cache_mb, runner, lock_fd)
-        except BaseException:
-            os.close(lock_fd)
-            raise
+        Raises
+        ------
+        StoreLockedError
+            When another process holds it and ``wait`` is false.
+        """
+        self.scene_spec(scene_id)  # the scene exists
+        return _lock_scene(self.scene_path(scene_id), wait=wait)
 
 
 def _lock_scene(folder: Path, wait: bool) -> int:
@@ -246,48 +235,7 @@ def _write_marker(path: Path) -> None:
     fsync_path(path)
 
 
-def open_store(
-    path: str | os.PathLike[str],
-    grid: GridSpec | None = None,
-    params: FusionParams | None = None,
-    *,
-    scene_id: str = DEFAULT_SCENE,
-    cache_mb: float = CACHE_MB,
-    runner: Runner | None = None,
-) -> Scene:
-    """Open (and recover) a scene of a store for writing, creating the store and the scene
-    when ``grid`` and ``params`` are given and they do not exist yet (the command line).
-
-    The returned scene owns the store: closing it closes both.
-
-    Raises
-    ------
-    StoreError
-        Not a store, another layout version (:class:`StoreVersionError`), the scene written
-        by another process (:class:`StoreLockedError`), or ``grid``/``params`` that
-        disagree with the existing scene (:class:`SceneConflictError`).
-    """
-    path = Path(path)
-    store = Store.open(path, create=grid is not None)
-    try:
-        row = store.catalog.scene(scene_id)
-        if row is None:
-            if grid is None or params is None:
-                raise StoreError(f"{path}: holds no scene {scene_id!r}")
-            store.create_scene(scene_id, grid, params)
-        else:
-            _check_same(path, "grid", row.grid, grid)
-            _check_same(path, "fusion parameters", row.params, params)
-        scene = store.open_scene(scene_id, cache_mb, runner)
-        scene.owns_store = True
-        scene.recovered.update(store.cleanup_uploads(scene_id))
-        return scene
-    except BaseException:
-        store.close()
-        raise
-
-
-def _check_same(path: Path, what: str, stored: dict[str, Any], given: Any) -> None:
+def check_same(path: Path, what: str, stored: dict[str, Any], given: Any) -> None:
     if given is None:
         return
     wanted = given.to_dict()

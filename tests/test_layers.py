@@ -88,3 +88,52 @@ def test_importing_engine_loads_none_of_the_heavy_layers() -> None:
         [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True
     )
     assert out.stdout.strip() == ""
+
+
+# --- a layout a newcomer can read (issue 17) ---------------------------------------------------
+
+#: Most lines in a module, and in a function that is not a numba kernel.
+MAX_MODULE_LINES = 600
+MAX_FUNCTION_LINES = 100
+
+
+def _is_kernel(node: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
+    """A numba kernel, or a factory that compiles one (a function that defines one)."""
+    return any(
+        isinstance(inner, ast.FunctionDef | ast.AsyncFunctionDef)
+        and any("njit" in ast.unparse(d) for d in inner.decorator_list)
+        for inner in ast.walk(node)
+    )
+
+
+def test_modules_and_functions_stay_readable() -> None:
+    long_modules = {}
+    long_functions = {}
+    for path in _sources():
+        source = path.read_text()
+        name = str(path.relative_to(ROOT))
+        if source.count("\n") > MAX_MODULE_LINES:
+            long_modules[name] = source.count("\n")
+        for node in ast.walk(ast.parse(source)):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef) and not _is_kernel(node):
+                lines = (node.end_lineno or node.lineno) - node.lineno + 1
+                if lines > MAX_FUNCTION_LINES:
+                    long_functions[f"{name}:{node.lineno} {node.name}"] = lines
+    assert long_modules == {}
+    assert long_functions == {}
+
+
+def test_every_package_folder_is_installed() -> None:
+    """pyproject.toml lists the packages (they are renamed under ``rangefuse``): a folder
+    with an ``__init__.py`` missing there would be left out of ``pip install .``."""
+    import tomllib
+
+    listed = set(
+        tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]
+    )
+    found = {
+        "rangefuse." + ".".join(init.parent.relative_to(ROOT).parts)
+        for package in PACKAGES
+        for init in (ROOT / package).rglob("__init__.py")
+    }
+    assert found == listed

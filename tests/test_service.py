@@ -394,7 +394,7 @@ def test_concurrent_uploads_are_fused_exactly_once(server, client, object_data):
     import threading
 
     from rangefuse.engine import Volume
-    from rangefuse.storage import Store
+    from rangefuse.storage import Store, open_scene
 
     sid = client.post("/v1/scenes", json=_scene_body(object_data)).json()["id"]
     statuses: list[int] = []
@@ -415,7 +415,7 @@ def test_concurrent_uploads_are_fused_exactly_once(server, client, object_data):
         assert time.time() < deadline
         time.sleep(0.2)
     assert _n_scans(client, sid) == 16
-    with Store.open(server.data_dir) as store, store.open_scene(sid, wait=True) as scene:
+    with Store.open(server.data_dir) as store, open_scene(store, sid, wait=True) as scene:
         served = scene.to_dense()
         volume = Volume(scene.grid, scene.params)
     volume.add_many(

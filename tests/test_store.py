@@ -16,16 +16,17 @@ from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
 from rangefuse.engine.grid import pack_keys
 from rangefuse.engine.synth import make_dataset
 from rangefuse.service.cli import main
-from rangefuse.storage import read_grid, write_dataset
-from rangefuse.storage.store import (
-    DEFAULT_SCENE,
+from rangefuse.storage import (
     SceneConflictError,
     Store,
     StoreError,
     StoreLockedError,
     StoreVersionError,
     open_store,
+    read_grid,
+    write_dataset,
 )
+from rangefuse.storage.store import DEFAULT_SCENE
 
 H = 0.04
 PARAMS = FusionParams(NoiseModel(eps=2 * H, rho=0.05))

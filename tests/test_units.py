@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
 from rangefuse.engine.synth import make_dataset
+from rangefuse.storage import open_store
 from rangefuse.storage.scene import SceneReport
-from rangefuse.storage.store import open_store
 from rangefuse.storage.units import InProcess, integrate_unit
 
 H = 0.04
