@@ -5,10 +5,14 @@ A unit never writes a scene's committed chunks: it reads them, and writes each t
 changes here, under ``<scene>/staging/c/<i>/<j>/<k>`` (the chunk's own name and bytes; a
 tile that became all unknown is an empty file, a *tombstone*). A unit killed at any point
 and run again therefore starts from the same committed state and writes the same bytes.
-Once the catalog has committed a group's checkpoint, :meth:`Staging.publish` renames the
+Once the catalog has committed a group's checkpoint, :meth:`Staging.publish` moves the
 staged chunks over the committed ones (and deletes the tombstoned ones); it is idempotent,
 so a publish cut short is finished at the next open. Without a committed checkpoint, the
 staged chunks are discarded.
+
+Each chunk is written to a temporary file and renamed, as zarr's ``LocalStore`` does, so a
+staged chunk is never torn; paths are plain strings and each folder is made once (per
+chunk, ``pathlib`` and a ``mkdir`` cost as much as the write itself).
 """
 
 from __future__ import annotations
@@ -16,11 +20,10 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import uuid
 from pathlib import Path
 
 import numpy as np
-from zarr.core.buffer import default_buffer_prototype
-from zarr.storage import LocalStore
 
 from .zarr_tiles import KEY_OFFSET, TileArrayError, ZarrTiles, fsync_paths, stored_chunk_keys
 
@@ -33,23 +36,42 @@ class Staging:
     def __init__(self, folder: Path, tiles: ZarrTiles) -> None:
         self.folder = Path(folder)
         self.tiles = tiles
-        self._store = LocalStore(self.folder)  # temporary file then rename: never torn
-        self._prototype = default_buffer_prototype()
+        self._made: set[str] = set()  # folders known to exist
 
     def _names(self, keys: np.ndarray) -> list[str]:
         return [f"c/{i}/{j}/{k}" for i, j, k in (keys + KEY_OFFSET).tolist()]
 
+    def _folder(self, path: str) -> None:
+        folder = os.path.dirname(path)
+        if folder not in self._made:
+            os.makedirs(folder, exist_ok=True)
+            self._made.add(folder)
+
+    def _put(self, path: str, payload: bytes) -> None:
+        """Write ``path`` through a temporary file and a rename (never torn)."""
+        self._folder(path)
+        tmp = f"{path}.{uuid.uuid4().hex}.partial"
+        try:
+            with open(tmp, "wb") as fh:
+                fh.write(payload)
+            os.replace(tmp, path)
+        except BaseException:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            raise
+
     def write(self, keys: np.ndarray, data: np.ndarray) -> None:
         """Stage whole tiles (int64 (n, T, T, T)); an all-unknown tile as a tombstone."""
         keys = np.asarray(keys, np.int64).reshape(-1, 3)
+        root = str(self.folder)
         for tile, name in zip(data, self._names(keys), strict=True):
-            payload = self.tiles.encode(tile) if tile.any() else b""
-            self._store.set_sync(name, self._prototype.buffer.from_bytes(payload))
+            self._put(f"{root}/{name}", self.tiles.encode(tile) if tile.any() else b"")
 
     def delete(self, keys: np.ndarray) -> None:
         """Stage the deletion of tiles (tombstones)."""
+        root = str(self.folder)
         for name in self._names(np.asarray(keys, np.int64).reshape(-1, 3)):
-            self._store.set_sync(name, self._prototype.buffer.from_bytes(b""))
+            self._put(f"{root}/{name}", b"")
 
     def read(self, keys: np.ndarray) -> np.ndarray:
         """Staged tiles (they must have been staged); a tombstone reads as unknown."""
@@ -57,10 +79,12 @@ class Staging:
         T = self.tiles.tile_size
         out = np.zeros((len(keys), T, T, T), np.int64)
         flat = out.reshape(len(keys), T**3)
+        root = str(self.folder)
         for n, name in enumerate(self._names(keys)):
-            path = self.folder / name
+            path = f"{root}/{name}"
             try:
-                raw = path.read_bytes()
+                with open(path, "rb") as fh:
+                    raw = fh.read()
             except FileNotFoundError:
                 raise TileArrayError(f"tile {keys[n].tolist()} was not staged") from None
             if raw:
@@ -78,18 +102,34 @@ class Staging:
 
     def publish(self) -> int:
         """Move every staged chunk over the committed one (a tombstone deletes it), make that
-        durable, then empty the staging area. Idempotent; returns the tiles published."""
+        durable, then empty the staging area. Idempotent; returns the tiles published.
+
+        A staged folder ``c/<i>/<j>`` whose committed twin does not exist yet (new ground)
+        moves whole, its tombstones dropped first; in a committed folder, chunk by chunk.
+        """
         keys = self.staged_keys()
-        for key, name in zip(keys, self._names(keys), strict=True):
-            staged = self.folder / name
-            live = self.tiles.chunk_path(key)
-            if staged.stat().st_size == 0:
-                with contextlib.suppress(FileNotFoundError):
-                    live.unlink()
-                staged.unlink()
-            else:
-                live.parent.mkdir(parents=True, exist_ok=True)
+        live_c = str(self.tiles.path / "c")
+        staged_c = str(self.folder / "c")
+        for i, j in np.unique(keys[:, :2] + KEY_OFFSET, axis=0).tolist():
+            staged = f"{staged_c}/{i}/{j}"
+            live = f"{live_c}/{i}/{j}"
+            entries = list(os.scandir(staged))
+            chunks = [e for e in entries if e.name.isdigit()]
+            if not os.path.isdir(live):
+                for entry in entries:  # tombstones (nothing committed to delete), orphans
+                    if not entry.name.isdigit() or entry.stat().st_size == 0:
+                        os.unlink(entry.path)
+                os.makedirs(f"{live_c}/{i}", exist_ok=True)
                 os.replace(staged, live)
+                continue
+            for entry in chunks:
+                target = f"{live}/{entry.name}"
+                if entry.stat().st_size == 0:
+                    with contextlib.suppress(FileNotFoundError):
+                        os.unlink(target)
+                    os.unlink(entry.path)
+                else:
+                    os.replace(entry.path, target)
         if len(keys):
             self.tiles.fsync(keys)
         self.discard()
@@ -98,3 +138,4 @@ class Staging:
     def discard(self) -> None:
         """Drop whatever is staged (a group that was never committed)."""
         shutil.rmtree(self.folder, ignore_errors=True)
+        self._made.clear()

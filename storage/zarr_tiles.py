@@ -365,7 +365,7 @@ def stored_chunk_keys(folder: Path) -> np.ndarray:
     return unique_keys(np.array(found, np.int64) - KEY_OFFSET)
 
 
-def _int_entries(folder: Path, dirs: bool) -> Iterator[tuple[int, Path]]:
+def _int_entries(folder: str | Path, dirs: bool) -> Iterator[tuple[int, str]]:
     """``(index, path)`` of the entries of ``folder`` named by a chunk index in range."""
     try:
         entries = list(os.scandir(folder))
@@ -382,4 +382,4 @@ def _int_entries(folder: Path, dirs: bool) -> Iterator[tuple[int, Path]]:
             continue
         is_dir = entry.is_dir(follow_symlinks=False)
         if is_dir if dirs else entry.is_file(follow_symlinks=False):
-            yield index, Path(entry.path)
+            yield index, entry.path
