@@ -73,3 +73,17 @@ def test_response_models_keep_the_answers_fields() -> None:
         "id": "j", "kind": "integrate", "scene_id": "s", "state": "queued", "progress": 0.0,
         "created_at": 1.0,
     }  # fmt: skip
+
+
+@pytest.mark.parametrize(("eps_per_m", "falloff", "expected"), [
+    (0.0, None, 0.04), (0.01, None, None), (0.01, 0.03, 0.03),
+])  # fmt: skip
+def test_a_scene_reports_the_falloff_it_uses(eps_per_m, falloff, expected) -> None:
+    """Without a fall-off of its own, the fall-off is eps + eps_per_m * r: eps only when the
+    half-width does not grow with range."""
+    from rangefuse.engine import FusionParams, GridSpec, NoiseModel
+    from rangefuse.storage.catalog import SceneRow
+
+    noise = NoiseModel(eps=0.04, eps_per_m=eps_per_m, rho=0.05, falloff=falloff)
+    row = SceneRow("s", "s", "t", GridSpec(0.02).to_dict(), FusionParams(noise).to_dict(), 1.0)
+    assert SceneOut.from_row(row).noise.falloff == expected

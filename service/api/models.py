@@ -116,13 +116,16 @@ class Health(BaseModel):
 
 
 class NoiseOut(BaseModel):
-    """The scene's noise model with every default filled in (``falloff``: ``eps`` when not
-    given)."""
+    """The scene's noise model with every default filled in. Without a ``falloff`` of its
+    own the fall-off is the noise half-width at each range, ``eps + eps_per_m * r``: that is
+    ``eps`` when ``eps_per_m`` is 0, and no single number (null) otherwise."""
 
     eps: float = declared("eps", response=True)
     eps_per_m: float = declared("eps_per_m", response=True)
     rho: float = declared("rho", response=True)
-    falloff: float = declared("falloff", response=True)
+    falloff: float | None = declared(
+        "falloff", response=True, note="null: eps + eps_per_m * r, the half-width at range r"
+    )
     shape: str = declared("shape", response=True)
 
 
@@ -157,7 +160,7 @@ class SceneOut(BaseModel):
                 eps=n.eps,
                 eps_per_m=n.eps_per_m,
                 rho=n.rho,
-                falloff=n.falloff if n.falloff is not None else n.eps,
+                falloff=n.falloff if n.falloff is not None or n.eps_per_m else n.eps,
                 shape=n.shape,
             ),
             filter=params.filter,
