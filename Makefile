@@ -79,3 +79,17 @@ bench-full: $(BENCH_STAMP)
 
 clean:
 	rm -rf $(VENV) .numba_cache out build .pytest_cache .mypy_cache .ruff_cache
+
+# Containers (docs/deployment.md). test-docker: starts dockerd when none runs, builds the image
+# (on a base built from Debian packages when Docker Hub cannot be reached), then runs the
+# compose stack end to end with one worker killed mid-job (docker/test-docker.sh).
+.PHONY: docker-base docker-image test-docker
+DOCKER_IMAGE ?= rangefuse:latest
+docker-base:
+	docker/base/build.sh rangefuse-base:bookworm
+
+docker-image:
+	RANGEFUSE_IMAGE=$(DOCKER_IMAGE) PY=$(BIN)/python docker/test-docker.sh build
+
+test-docker: install
+	RANGEFUSE_IMAGE=$(DOCKER_IMAGE) PY=$(BIN)/python docker/test-docker.sh all
