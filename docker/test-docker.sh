@@ -156,7 +156,7 @@ build_image() {
         build=(env DOCKER_BUILDKIT=0 docker build)  # the classic builder: no buildx here
     fi
     say "building $IMAGE on $BASE (log: $LOG_DIR/build.log)"
-    if ! "${build[@]}" -f docker/Dockerfile --build-arg "BASE=$BASE" -t "$IMAGE" . \
+    if ! "${build[@]}" --force-rm -f docker/Dockerfile --build-arg "BASE=$BASE" -t "$IMAGE" . \
         >"$LOG_DIR/build.log" 2>&1; then
         tail -40 "$LOG_DIR/build.log"
         say "the image build failed"

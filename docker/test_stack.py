@@ -6,10 +6,10 @@ that is already built, then, with a real HTTP client on the published port:
 
 1. creates a scene, uploads the scans of ``rangefuse synth object --views N``, asks for a
    reconstruction, waits for the scene's jobs and downloads the mesh (PLY);
-2. does the same on a fresh scene, and ``docker kill``s one worker container while one of
-   the scene's jobs is running (halfway through its progress, or after it has run for a
-   moment); the jobs must still complete, on the surviving worker, and the mesh must be
-   byte-identical to the first one;
+2. does the same on a fresh scene, and ``docker kill``s the container of a worker that the
+   scheduler shows running units of one of the scene's jobs (watched from inside the
+   scheduler's container); the jobs must still complete, on the surviving worker, and the
+   mesh must be byte-identical to the first one;
 3. starts the killed worker again and waits until the cluster has two workers again.
 
 Everything the stack made (containers, network, volume) is removed at the end, also when a
@@ -25,7 +25,6 @@ import argparse
 import hashlib
 import json
 import os
-import random
 import shlex
 import socket
 import subprocess
@@ -293,43 +292,86 @@ def ply_faces(data: bytes) -> int:
 # --- the test ----------------------------------------------------------------------------------
 
 
-class Killer(threading.Thread):
-    """Watches a scene's jobs and ``docker kill``s one worker while a job is running."""
+#: Run in the scheduler's container (``python3 -c WATCH_SCHEDULER``): prints "ready" once
+#: connected, then every 50 ms, while some worker has tasks, ``{worker address: tasks}`` as
+#: a JSON line; exits when its standard input closes.
+WATCH_SCHEDULER = """
+import json, os, sys, threading, time
+from distributed import Client
+threading.Thread(target=lambda: (sys.stdin.read(), os._exit(0)), daemon=True).start()
+with Client("tcp://127.0.0.1:8786", timeout=30) as client:
+    print("ready", flush=True)
+    while True:
+        busy = {w: len(keys) for w, keys in client.processing().items() if keys}
+        if busy:
+            print(json.dumps(busy), flush=True)
+        time.sleep(0.05)
+"""
 
-    def __init__(
-        self, api: Api, stack: Stack, scene: str, victim: str, steps: Steps, min_running_s: float
-    ) -> None:
+
+class Killer(threading.Thread):
+    """``docker kill``s the container of a worker that the scheduler shows running units of
+    a job of the scene, once that job has been running for ``delay`` seconds."""
+
+    def __init__(self, api: Api, stack: Stack, scene: str, steps: Steps, delay: float) -> None:
         super().__init__(daemon=True)
-        self.api, self.stack, self.scene, self.victim = api, stack, scene, victim
-        self.steps, self.min_running_s = steps, min_running_s
-        self.stop = threading.Event()
+        self.api, self.scene, self.steps, self.delay = api, scene, steps, delay
         self.killed: dict[str, Any] | None = None
         self.error: BaseException | None = None
-        self.seen_running: dict[str, float] = {}
+        self.containers = {}  # the workers' addresses on the stack's network -> container
+        for name in stack.containers("worker"):
+            fmt = "{{range .NetworkSettings.Networks}}{{.IPAddress}} {{end}}"
+            for ip in run(["docker", "inspect", "-f", fmt, name]).split():
+                self.containers[ip] = name
+        (scheduler,) = stack.containers("scheduler")
+        self.watch = subprocess.Popen(
+            ["docker", "exec", "-i", scheduler, "python3", "-c", WATCH_SCHEDULER],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        assert self.watch.stdout is not None
+        first = self.watch.stdout.readline().strip()
+        if first != "ready":
+            self.close()
+            raise CheckError(f"watching the scheduler: {first or 'no answer'}")
+
+    def close(self) -> None:
+        if self.watch.stdin:
+            self.watch.stdin.close()  # the watcher exits
+        try:
+            self.watch.wait(10)
+        except subprocess.TimeoutExpired:
+            self.watch.kill()
+
+    def _running_job(self) -> dict[str, Any] | None:
+        return next((j for j in self.api.scene_jobs(self.scene) if j["state"] == "running"), None)
 
     def run(self) -> None:
+        assert self.watch.stdout is not None
+        seen: dict[str, float] = {}
         try:
-            while not self.stop.is_set() and self.killed is None:
-                for job in self.api.scene_jobs(self.scene):
-                    if job["state"] != "running":
-                        continue
-                    first = self.seen_running.setdefault(job["id"], time.monotonic())
-                    ran = time.monotonic() - first
-                    if 0 < job["progress"] < 1 or ran >= self.min_running_s:
-                        run(["docker", "kill", self.victim])
-                        self.killed = {
-                            "at": time.time(),
-                            "job": job["id"],
-                            "kind": job["kind"],
-                            "progress": job["progress"],
-                            "ran": ran,
-                        }
-                        self.steps.log(
-                            f"docker kill {self.victim}: {job['kind']} job "
-                            f"{job['id']} running, progress {job['progress']:.2f}"
-                        )
-                        break
-                time.sleep(0.05)
+            for line in self.watch.stdout:
+                if not line.startswith("{"):
+                    continue
+                busy: dict[str, int] = json.loads(line)
+                job = self._running_job()
+                if job is None:
+                    continue
+                ran = time.monotonic() - seen.setdefault(job["id"], time.monotonic())
+                address, tasks = max(busy.items(), key=lambda item: item[1])
+                victim = self.containers.get(address.split("://")[-1].rsplit(":", 1)[0])
+                if ran < self.delay or victim is None:
+                    continue
+                run(["docker", "kill", victim])
+                self.killed = {"at": time.time(), "victim": victim, "tasks": tasks, "ran": ran}
+                self.killed.update(job=job["id"], kind=job["kind"], progress=job["progress"])
+                self.steps.log(
+                    f"docker kill {victim}: it had {tasks} unit(s) of the {job['kind']} job "
+                    f"{job['id']} (running for {ran:.1f} s, progress {job['progress']:.2f})"
+                )
+                break
         except BaseException as exc:  # reported by the main thread
             self.error = exc
 
@@ -409,9 +451,8 @@ class Run:
             workers = stack.containers("worker")
             if len(workers) != args.workers:
                 raise CheckError(f"expected {args.workers} worker containers, found {workers}")
-            victim = random.Random(args.seed).choice(workers)
             scene = api.create_scene("e2e-2", self.params)
-            killer = Killer(api, stack, scene, victim, self.steps, args.min_running)
+            killer = Killer(api, stack, scene, self.steps, args.kill_after)
             killer.start()
             try:
                 for path in scans:
@@ -419,14 +460,15 @@ class Run:
                 api.reconstruct(scene)
                 jobs = api.wait_jobs(scene, args.job_timeout)
             finally:
-                killer.stop.set()
+                killer.close()
                 killer.join(10)
             if killer.error is not None:
                 raise CheckError(f"watching the jobs failed: {killer.error!r}")
             if killer.killed is None:
                 raise CheckError(
-                    "no job of scene 2 was seen running, so no worker was killed "
-                    "(the jobs are too short: try a smaller --voxel-size)"
+                    "no worker was seen running a unit of a job of scene 2 for "
+                    f"{args.kill_after} s, so none was killed (the jobs are too short: try "
+                    "a smaller --voxel-size or a shorter --kill-after)"
                 )
             k = killer.killed
             job = next(j for j in jobs if j["id"] == k["job"])
@@ -440,10 +482,12 @@ class Run:
                     f"{hashlib.sha256(mesh1).hexdigest()} (scene 1) vs {len(mesh)} bytes, "
                     f"sha256 {hashlib.sha256(mesh).hexdigest()} (scene 2)"
                 )
+            victim = k["victim"]
             state = run(["docker", "inspect", "-f", "{{.State.Status}}", victim]).strip()
             note["detail"] = (
-                f"killed {victim} at progress {k['progress']:.2f} of the {k['kind']} job "
-                f"(running for {k['ran']:.1f} s), which finished {after:.1f} s later; "
+                f"killed {victim}, which had {k['tasks']} unit(s) of the {k['kind']} job "
+                f"(running for {k['ran']:.1f} s, progress {k['progress']:.2f}); the job "
+                f"finished {after:.1f} s later; "
                 f"{len(jobs)} jobs done; the mesh is byte-identical to scene 1's; "
                 f"{victim} is {state}, /healthz {api.health()[1]}"
             )
@@ -508,12 +552,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--workers", type=int, default=2, help="Dask workers the stack starts")
     ap.add_argument("--job-timeout", type=float, default=600.0, help="seconds per scene")
     ap.add_argument(
-        "--min-running",
+        "--kill-after",
         type=float,
-        default=1.0,
-        help="kill once a job has run this long, if its progress has not moved before",
+        default=0.5,
+        help="kill a busy worker once a job of scene 2 has run this long (s)",
     )
-    ap.add_argument("--seed", type=int, default=None, help="seeds the choice of the worker")
     ap.add_argument("--keep", action="store_true", help="leave the stack up at the end")
     return ap.parse_args(argv)
 
