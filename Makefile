@@ -4,7 +4,6 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-dev
 BENCH_STAMP := $(VENV)/.installed-bench
-export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
 PYTEST_FLAGS ?= -q
 
 .PHONY: install run demo test test-real check lint types bench bench-full clean

@@ -35,7 +35,7 @@ from .defaults import COUNT_BITS, REFINE_SAMPLES
 from .errors import InvalidGridError
 from .grid import Bounds, GridSpec, pack_keys, unique_keys
 from .scans import FusionParams, PreparedScan
-from .volume import TileStore
+from .volume import TileReader
 
 __all__ = [
     "HALO_TILES",
@@ -381,7 +381,7 @@ def _neighbour_rows(mesh_keys: np.ndarray, data_keys: np.ndarray) -> np.ndarray:
 
 
 def mesh_tiles(
-    store: TileStore,
+    store: TileReader,
     grid: GridSpec,
     params: FusionParams,
     scans: Iterable[PreparedScan],
@@ -514,7 +514,7 @@ def _pack_vertex_keys(vkey: np.ndarray) -> np.ndarray:
 
 
 def extract_mesh(
-    store: TileStore,
+    store: TileReader,
     grid: GridSpec,
     params: FusionParams,
     scans: Iterable[PreparedScan],

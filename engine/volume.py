@@ -21,7 +21,7 @@ from .certainty import decode_logodds
 from .errors import InvalidGridError
 from .grid import Bounds, GridSpec
 
-__all__ = ["DenseGrid", "MemoryTileStore", "TileStore", "dense_logodds", "key_tuple"]
+__all__ = ["DenseGrid", "MemoryTileStore", "TileReader", "TileStore", "dense_logodds", "key_tuple"]
 
 #: Refuse to build dense grids above this many voxels (4 GB of float32).
 MAX_DENSE_VOXELS = 1 << 30
@@ -36,8 +36,8 @@ def _tuples(keys: np.ndarray) -> list[tuple[int, int, int]]:
     return [(a, b, c) for a, b, c in np.asarray(keys, np.int64).reshape(-1, 3).tolist()]
 
 
-class TileStore(Protocol):
-    """Storage of tiles: packed voxel data and owners, by integer tile key."""
+class TileReader(Protocol):
+    """Tiles to read (meshing, dense export): packed voxel data by integer tile key."""
 
     tile_size: int
 
@@ -48,6 +48,10 @@ class TileStore(Protocol):
     def read(self, keys: np.ndarray) -> np.ndarray:
         """Voxel data of ``keys`` as int64 (n, T, T, T); a missing tile reads as unknown (0)."""
         ...
+
+
+class TileStore(TileReader, Protocol):
+    """Storage of tiles: packed voxel data and owners, by integer tile key."""
 
     def owners(self, keys: np.ndarray) -> list[frozenset[str]]:
         """Owner scan ids of each tile (empty for a missing tile)."""
@@ -197,7 +201,7 @@ class DenseGrid:
 
 
 def dense_logodds(
-    store: TileStore, grid: GridSpec, bounds: Sequence[float] | None = None
+    store: TileReader, grid: GridSpec, bounds: Sequence[float] | None = None
 ) -> DenseGrid:
     """Decode the tiles into a dense grid.
 

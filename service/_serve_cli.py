@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 from rangefuse.storage import Store
@@ -19,7 +18,7 @@ def _settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     values = {}
     if args.data_dir is not None:
         values["data_dir"] = args.data_dir
-    for name in ("host", "port", "workers"):
+    for name in ("host", "port", "workers", "scheduler", "worker_memory"):
         if getattr(args, name, None) is not None:
             values[name] = getattr(args, name)
     try:
@@ -35,7 +34,6 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from .app import create_app
 
     settings = _settings(args)
-    os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(settings.data_dir) / ".numba_cache"))
     app = create_app(settings)  # creates the store when missing
     with Store.open(settings.data_dir) as store, Accounts(store.catalog.path) as accounts:
         if accounts.n_tokens() == 0:
@@ -63,7 +61,20 @@ def add_serve_commands(sub: argparse._SubParsersAction) -> None:
     serve.add_argument("--data-dir", type=Path, default=None, help="store (RANGEFUSE_DATA_DIR)")
     serve.add_argument("--host", default=None, help="address (default 127.0.0.1)")
     serve.add_argument("--port", type=positive_int, default=None, help="port (default 8000)")
-    serve.add_argument("--workers", type=positive_int, default=None, help="job processes")
+    serve.add_argument(
+        "--workers", type=positive_int, default=None,
+        help="Dask worker processes to start for the jobs' units of work (RANGEFUSE_WORKERS, "
+        "default 2)",
+    )  # fmt: skip
+    serve.add_argument(
+        "--worker-memory", default=None, metavar="SIZE",
+        help="memory limit of each of them, e.g. 2GiB (RANGEFUSE_WORKER_MEMORY, default auto)",
+    )  # fmt: skip
+    serve.add_argument(
+        "--scheduler", default=None, metavar="tcp://HOST:PORT",
+        help="join a running Dask cluster instead (RANGEFUSE_SCHEDULER); the store must be on "
+        "a file system its workers see",
+    )  # fmt: skip
     serve.set_defaults(func=_cmd_serve)
 
     token = sub.add_parser("token", help="manage API tokens")

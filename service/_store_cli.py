@@ -32,7 +32,6 @@ from ._cliutil import (
     write_outputs,
 )
 from ._progress import ProgressBar
-from .runners import ProcessRunner
 
 __all__ = ["add_store_commands", "cache_option", "fuse_into_store", "workers_option"]
 
@@ -106,12 +105,22 @@ def fuse_into_store(
 
 @contextlib.contextmanager
 def _runner(args: argparse.Namespace) -> Iterator[Runner]:
-    workers = getattr(args, "workers", 1)
-    if workers <= 1:
+    """Here, on a LocalCluster of ``--workers N``, or on the cluster of ``--scheduler``."""
+    workers = getattr(args, "workers", None)
+    scheduler = getattr(args, "scheduler", None)
+    if workers is None and scheduler is None:
         yield InProcess()
         return
-    with ProcessRunner(workers) as runner:
-        yield runner
+    if workers is not None and scheduler is not None:
+        raise CommandError("--workers starts a cluster, --scheduler joins one: give one of them")
+    from .cluster import Cluster
+
+    try:
+        cluster = Cluster(workers or 1, scheduler=scheduler)
+    except OSError as exc:  # no scheduler there
+        raise CommandError(f"--scheduler {scheduler}: cannot reach it ({exc})") from None
+    with cluster:
+        yield cluster.runner()
 
 
 def _open_existing(args: argparse.Namespace, runner: Runner | None = None) -> Scene:
@@ -155,7 +164,7 @@ def _cmd_add(args: argparse.Namespace) -> int:
 
 def _cmd_remove(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
-    with _open_existing(args) as scene:
+    with _runner(args) as runner, _open_existing(args, runner) as scene:
         if args.scan_id not in scene:
             raise CommandError(f"the store holds no scan {args.scan_id!r}")
         report = scene.remove(args.scan_id)
@@ -170,7 +179,7 @@ def _cmd_extract(args: argparse.Namespace) -> int:
     if args.output is None and args.grid_out is None:
         raise CommandError("nothing to write: give -o MESH and/or --grid-out GRID.npz")
     check_outputs(args)
-    with _open_existing(args) as scene:
+    with _runner(args) as runner, _open_existing(args, runner) as scene:
         if scene.scan_rows(("stored",)):
             print("note: some scans are stored but not fused yet; run `rangefuse add` or fuse")
         _write_scene_outputs(args, scene)
@@ -214,6 +223,7 @@ def add_store_commands(sub: argparse._SubParsersAction) -> None:
     remove.add_argument("store", type=Path, metavar="DIR")
     remove.add_argument("scan_id", metavar="SCAN_ID")
     cache_option(remove)
+    workers_option(remove)
     remove.set_defaults(func=_cmd_remove)
 
     extract = sub.add_parser("extract", help="write a store's mesh and/or dense grid")
@@ -228,6 +238,7 @@ def add_store_commands(sub: argparse._SubParsersAction) -> None:
         help="only this box (world metres)",
     )
     cache_option(extract)
+    workers_option(extract)
     extract.set_defaults(func=_cmd_extract)
 
     info = sub.add_parser("info", help="describe a store: scans, tiles, bytes, version")
@@ -237,13 +248,21 @@ def add_store_commands(sub: argparse._SubParsersAction) -> None:
 
 
 def workers_option(parser: argparse.ArgumentParser) -> None:
+    """``--workers N`` and ``--scheduler ADDRESS``: where the units of work run."""
     parser.add_argument(
         "--workers",
         type=positive_int,
-        default=1,
+        default=None,
         metavar="N",
-        help="fuse tiles on N spawned worker processes, numba threads divided among them "
-        "(default 1: in this process; same bits either way)",
+        help="run the units of work on a Dask LocalCluster of N worker processes, numba "
+        "threads divided among them (default: in this process; same bits either way)",
+    )
+    parser.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="tcp://HOST:PORT",
+        help="run the units of work on a running Dask cluster; the store must be on a file "
+        "system its workers see",
     )
 
 

@@ -3,7 +3,8 @@
 ``create_app(settings)`` assembles the FastAPI application from the routers in
 ``service/api/routes`` (one per resource), the exception handlers and the body-limit
 middleware; ``rangefuse serve`` runs it under uvicorn. Requests never run a kernel: uploads
-are archived (durably) and queued as jobs that worker processes run (:mod:`service.jobs`).
+are archived (durably) and queued as jobs whose units of work run on a Dask cluster
+(:mod:`service.jobs`).
 Every bad input is answered with a 4xx and ``{"detail": "..."}`` naming the problem;
 nothing is stored for a refused request.
 """
@@ -15,6 +16,7 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from rangefuse.engine import InvalidInputError
@@ -24,7 +26,7 @@ from .accounts import Accounts
 from .api.deps import Services, ThreadStores
 from .api.limits import BodyLimit
 from .api.routes import ROUTERS
-from .jobs import Dispatcher
+from .jobs import JobRunner
 from .queue import JobQueue
 from .settings import Settings
 from .uploads import UploadError
@@ -68,7 +70,7 @@ def create_app(settings: Settings) -> FastAPI:
         store=ThreadStores(data_dir),
         accounts=Accounts(db_path),
         queue=JobQueue(db_path),
-        dispatcher=Dispatcher(data_dir, settings.workers, settings.cache_mb, settings.poll_s),
+        jobs=JobRunner(data_dir, settings),
     )
 
     @asynccontextmanager
@@ -76,9 +78,9 @@ def create_app(settings: Settings) -> FastAPI:
         with Store.open(data_dir) as s:  # uploads never acknowledged before a crash
             for row in s.catalog.scenes():
                 s.cleanup_uploads(row.id)
-        services.dispatcher.start()
+        await run_in_threadpool(services.jobs.start)  # starts (or joins) the Dask cluster
         yield
-        services.dispatcher.stop()
+        await run_in_threadpool(services.jobs.stop)
 
     app = FastAPI(
         title="rangefuse",

@@ -35,6 +35,7 @@ from ._import_cli import add_import_command, read_source_for_fuse
 from ._progress import ProgressBar
 from ._serve_cli import add_serve_commands
 from ._store_cli import add_store_commands, cache_option, fuse_into_store, workers_option
+from .warmup import add_warmup_command
 
 __all__ = ["main"]
 
@@ -216,6 +217,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_store_commands(sub)
     add_serve_commands(sub)
     add_import_command(sub)
+    add_warmup_command(sub)
     return parser
 
 

@@ -1,11 +1,20 @@
-"""Jobs: persisted in the job queue, run in spawned worker processes, resumed after a restart.
+"""Jobs: queued in the job queue, carried out here, their units of work on a Dask cluster.
 
-The API process only queues jobs (:mod:`service.queue`). A :class:`Dispatcher` thread
-claims queued jobs (one at a time per scene) and runs :func:`run_job` on a pool of worker
-processes started with ``spawn``; each job opens its scene for writing (waiting for the
-scene's writer lock), does the work and records the outcome. A service killed mid-job
-leaves the job ``running``; the next start puts it back in the queue, and since fusion and
-extraction are exact and idempotent the job completes with the same result.
+The API process queues jobs (:mod:`service.queue`). A :class:`JobRunner` claims them, one
+running job per scene, and carries each out in a thread of this process: it opens the
+scene for writing (its lock, its catalog) and hands every unit of work, planning, fusion,
+removal, rebuilds and meshing, to the cluster (:mod:`service.cluster`). Nothing heavy runs
+in this process, and the catalog never leaves it.
+
+- A worker that dies mid-unit is replaced and its units run again: the job completes with
+  the same bits. A unit that keeps killing workers fails its job with a message that names
+  its scans; the queue goes on.
+- ``cancel`` stops a job between units (nothing is committed; what was staged is dropped by
+  the next run): the job reads ``cancelled``.
+- Stopping the service (SIGTERM) interrupts the running jobs the same way and puts them back
+  in the queue; a killed service leaves them ``running``, and the next start queues them
+  again. Fusion and extraction are exact and can run again, so a resumed job gives the
+  result an uninterrupted one would have.
 """
 
 from __future__ import annotations
@@ -15,17 +24,21 @@ import logging
 import threading
 import time
 import uuid
-from concurrent.futures import Future
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from rangefuse.storage import Store, open_scene
+from rangefuse.storage._files import atomic_write
+from rangefuse.storage.scene import Scene
+from rangefuse.storage.units import Runner
 
+from .cluster import Cluster, RunInterruptedError, UnitFailedError
 from .queue import JobQueue, JobRow
-from .runners import spawn_pool
+from .settings import Settings
 
-__all__ = ["Dispatcher", "new_id", "run_job"]
+__all__ = ["JobRunner", "new_id", "run_job"]
 
 log = logging.getLogger("rangefuse.jobs")
 
@@ -36,129 +49,167 @@ def new_id() -> str:
     return uuid.uuid4().hex[:16]
 
 
-def _mesh_path(store: Store, scene_id: str, job_id: str) -> Path:
-    return store.scene_path(scene_id) / "meshes" / f"{job_id}.npz"
+def run_job(
+    store: Store, queue: JobQueue, job: JobRow, runner: Runner, cache_mb: float
+) -> dict[str, Any]:
+    """Carry out one job (its units on ``runner``); returns its result. Raises what stopped
+    it: :class:`~service.cluster.RunInterruptedError`, :class:`~service.cluster.UnitFailedError` or
+    the error of a unit."""
+    assert job.scene_id is not None
+    t0 = time.perf_counter()
+    with open_scene(store, job.scene_id, cache_mb, runner, wait=True) as scene:
+
+        def progress(done: int, total: int) -> None:
+            queue.update_job(job.id, progress=done / max(total, 1))
+
+        result: dict[str, Any]
+        if job.kind == "integrate":
+            report = scene.integrate_pending(progress=progress)
+            result = {"scans": report.scans, "voxel_updates": report.voxel_updates}
+        elif job.kind == "remove":
+            scan_id = job.payload["scan_id"]
+            removed = scene.remove(scan_id) if scan_id in scene else None
+            result = {"scan_id": scan_id, "tiles": 0 if removed is None else removed.tiles_written}
+        elif job.kind == "reconstruct":
+            result = _reconstruct(scene, queue, job)
+        else:
+            raise ValueError(f"unknown job kind {job.kind!r}")
+    result["seconds"] = time.perf_counter() - t0
+    return result
 
 
-def run_job(data_dir: str, job_id: str, cache_mb: float) -> dict[str, Any]:
-    """Run one job to completion (in a worker process); returns its result."""
-    from rangefuse.storage._files import atomic_write
-
-    with Store.open(data_dir) as store, JobQueue(store.catalog.path) as queue:
-        job = queue.job(job_id)
-        if job is None or job.scene_id is None:
-            return {}
-        if store.catalog.scene(job.scene_id) is None:
-            queue.update_job(job_id, state="failed", error="the scene was deleted")
-            return {}
-        t0 = time.perf_counter()
-        try:
-            with open_scene(store, job.scene_id, cache_mb, wait=True) as scene:
-
-                def progress(done: int, total: int) -> None:
-                    queue.update_job(job_id, progress=done / max(total, 1))
-
-                result: dict[str, Any]
-                if job.kind == "integrate":
-                    report = scene.integrate_pending(progress=progress)
-                    result = {"scans": report.scans, "voxel_updates": report.voxel_updates}
-                elif job.kind == "remove":
-                    scan_id = job.payload["scan_id"]
-                    removed = scene.remove(scan_id) if scan_id in scene else None
-                    result = {
-                        "scan_id": scan_id,
-                        "tiles": 0 if removed is None else removed.tiles_written,
-                    }
-                elif job.kind == "reconstruct":
-                    if scene.scan_rows(("stored",)):
-                        scene.integrate_pending()
-                    mesh, counts = scene.extract_mesh(
-                        refine=bool(job.payload.get("refine", True)),
-                        bounds=job.payload.get("bounds"),
-                    )
-                    path = _mesh_path(store, job.scene_id, job_id)
-                    arrays = {
-                        "vertices": mesh.vertices,
-                        "faces": mesh.faces,
-                        "inferred": mesh.inferred,
-                    }
-                    digest = hashlib.sha256()
-                    for value in arrays.values():
-                        digest.update(np.ascontiguousarray(value).tobytes())
-                    atomic_write(
-                        path,
-                        lambda fh: np.savez(
-                            fh,
-                            vertices=arrays["vertices"],
-                            faces=arrays["faces"],
-                            inferred=arrays["inferred"],
-                        ),
-                        fsync=True,
-                    )
-                    queue.set_mesh(
-                        job.scene_id, job_id, str(path), digest.hexdigest()[:32], mesh.n_faces
-                    )
-                    result = {"faces": mesh.n_faces, "vertices": mesh.n_vertices, **counts}
-                else:
-                    raise ValueError(f"unknown job kind {job.kind!r}")
-            result["seconds"] = time.perf_counter() - t0
-            queue.update_job(job_id, state="done", progress=1.0, result=result)
-            return result
-        except Exception as exc:  # a job's failure is recorded, never raised into the pool
-            log.exception("job %s failed", job_id)
-            queue.update_job(job_id, state="failed", error=f"{type(exc).__name__}: {exc}")
-            return {}
+def _reconstruct(scene: Scene, queue: JobQueue, job: JobRow) -> dict[str, Any]:
+    if scene.scan_rows(("stored",)):
+        scene.integrate_pending()
+    mesh, counts = scene.extract_mesh(
+        refine=bool(job.payload.get("refine", True)), bounds=job.payload.get("bounds")
+    )
+    path = scene.store.scene_path(scene.scene_id) / "meshes" / f"{job.id}.npz"
+    arrays = {"vertices": mesh.vertices, "faces": mesh.faces, "inferred": mesh.inferred}
+    digest = hashlib.sha256()
+    for value in arrays.values():
+        digest.update(np.ascontiguousarray(value).tobytes())
+    atomic_write(
+        path,
+        lambda fh: np.savez(
+            fh, vertices=arrays["vertices"], faces=arrays["faces"], inferred=arrays["inferred"]
+        ),
+        fsync=True,
+    )
+    queue.set_mesh(scene.scene_id, job.id, str(path), digest.hexdigest()[:32], mesh.n_faces)
+    return {"faces": mesh.n_faces, "vertices": mesh.n_vertices, **counts}
 
 
-class Dispatcher:
-    """Claims queued jobs and runs them on worker processes (one running job per scene)."""
+@dataclass
+class _Running:
+    thread: threading.Thread
+    cancelled: threading.Event
+    scene_id: str | None
 
-    def __init__(self, data_dir: Path, workers: int, cache_mb: float, poll_s: float) -> None:
-        self.data_dir = data_dir
-        self.workers = workers
-        self.cache_mb = cache_mb
-        self.poll_s = poll_s
-        self._pool = spawn_pool(workers)
-        self._running: dict[Future[dict[str, Any]], JobRow] = {}
+
+class JobRunner:
+    """Claims queued jobs and carries them out (see the module's note)."""
+
+    def __init__(self, data_dir: Path, settings: Settings) -> None:
+        self.data_dir = Path(data_dir)
+        self.settings = settings
+        self.cluster: Cluster | None = None
+        self._running: dict[str, _Running] = {}
+        self._lock = threading.Lock()
         self._stop = threading.Event()
         self._wake = threading.Event()
-        self._thread = threading.Thread(target=self._loop, name="rangefuse-dispatcher", daemon=True)
+        self._thread = threading.Thread(target=self._loop, name="rangefuse-jobs", daemon=True)
+
+    def _queue(self) -> JobQueue:
+        with Store.open(self.data_dir) as store:
+            return JobQueue(store.catalog.path)
 
     def start(self) -> None:
-        with Store.open(self.data_dir) as store, JobQueue(store.catalog.path) as queue:
+        """Put jobs a stopped service left running back in the queue, start or join the
+        cluster, and begin claiming jobs."""
+        with self._queue() as queue:
             resumed = queue.requeue_running()
         if resumed:
             log.info("resuming %d interrupted jobs", resumed)
+        s = self.settings
+        self.cluster = Cluster(s.workers, s.worker_memory, s.scheduler)
         self._thread.start()
 
     def wake(self) -> None:
         self._wake.set()
 
+    def workers(self) -> int:
+        """Workers that can run units now (0: jobs cannot make progress)."""
+        return 0 if self.cluster is None else self.cluster.n_workers()
+
+    def cancel(self, job_id: str, queue: JobQueue) -> JobRow | None:
+        """Cancel a job: a queued one at once, a running one between two of its units."""
+        job = queue.cancel(job_id)
+        with self._lock:
+            running = self._running.get(job_id)
+        if running is not None:
+            running.cancelled.set()
+        return job
+
     def stop(self) -> None:
+        """Interrupt the running jobs (they go back to the queue), then stop the cluster."""
         self._stop.set()
         self._wake.set()
-        self._thread.join(timeout=10)
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        if self._thread.is_alive():
+            self._thread.join(timeout=30)
+        with self._lock:
+            threads = [r.thread for r in self._running.values()]
+        for thread in threads:
+            thread.join(timeout=60)
+        if self.cluster is not None:
+            self.cluster.close()
 
     def _loop(self) -> None:
-        with Store.open(self.data_dir) as store:
-            path = store.catalog.path
-        queue = JobQueue(path)
-        try:
+        with self._queue() as queue:
             while not self._stop.is_set():
-                for fut in [f for f in self._running if f.done()]:
-                    job = self._running.pop(fut)
-                    exc = fut.exception()
-                    if exc is not None:  # the worker process died
-                        queue.update_job(job.id, state="failed", error=f"worker failed: {exc}")
-                while len(self._running) < self.workers:
-                    busy = [j.scene_id for j in self._running.values() if j.scene_id]
-                    claimed = queue.claim_job(busy)
+                with self._lock:
+                    for job_id in [j for j, r in self._running.items() if not r.thread.is_alive()]:
+                        del self._running[job_id]
+                    scenes = [r.scene_id for r in self._running.values() if r.scene_id]
+                while len(scenes) < self.settings.jobs and not self._stop.is_set():
+                    claimed = queue.claim_job(scenes)
                     if claimed is None:
                         break
-                    fut = self._pool.submit(run_job, str(self.data_dir), claimed.id, self.cache_mb)
-                    self._running[fut] = claimed
-                self._wake.wait(self.poll_s)
+                    self._begin(claimed)
+                    scenes.append(claimed.scene_id or "")
+                self._wake.wait(self.settings.poll_s)
                 self._wake.clear()
-        finally:
-            queue.close()
+
+    def _begin(self, job: JobRow) -> None:
+        cancelled = threading.Event()
+        thread = threading.Thread(
+            target=self._carry_out, args=(job, cancelled), name=f"rangefuse-job-{job.id}",
+            daemon=True,
+        )  # fmt: skip
+        with self._lock:
+            self._running[job.id] = _Running(thread, cancelled, job.scene_id)
+        thread.start()
+
+    def _carry_out(self, job: JobRow, cancelled: threading.Event) -> None:
+        assert self.cluster is not None
+        runner = self.cluster.runner(lambda: cancelled.is_set() or self._stop.is_set())
+        with Store.open(self.data_dir) as store, JobQueue(store.catalog.path) as queue:
+            if job.scene_id is None or store.catalog.scene(job.scene_id) is None:
+                queue.update_job(job.id, state="failed", error="the scene was deleted")
+                return
+            try:
+                result = run_job(store, queue, job, runner, self.settings.cache_mb)
+            except RunInterruptedError:
+                if cancelled.is_set():
+                    queue.update_job(job.id, state="cancelled")
+                else:  # the service stops: the job runs again at the next start
+                    queue.update_job(job.id, state="queued", progress=0.0)
+                return
+            except UnitFailedError as exc:
+                queue.update_job(job.id, state="failed", error=str(exc))
+                return
+            except Exception as exc:  # a job's failure is recorded, never raised
+                log.exception("job %s failed", job.id)
+                queue.update_job(job.id, state="failed", error=f"{type(exc).__name__}: {exc}")
+                return
+            queue.update_job(job.id, state="done", progress=1.0, result=result)

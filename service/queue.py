@@ -31,8 +31,9 @@ CREATE TABLE IF NOT EXISTS meshes(
     faces INTEGER NOT NULL, created_at REAL NOT NULL);
 """
 
-#: States of a job.
-JOB_STATES = ("queued", "running", "done", "failed")
+#: States of a job: ``cancelling`` is a running job asked to stop; the last three are final.
+JOB_STATES = ("queued", "running", "cancelling", "done", "failed", "cancelled")
+_FINAL = ("done", "failed", "cancelled")
 
 
 @dataclass(frozen=True)
@@ -138,7 +139,10 @@ class JobQueue:
         """The oldest queued job of a scene with no running job, now marked running."""
         with self._db.transaction():
             running = {
-                r[0] for r in self._db.rows("SELECT scene_id FROM jobs WHERE state='running'")
+                r[0]
+                for r in self._db.rows(
+                    "SELECT scene_id FROM jobs WHERE state IN ('running', 'cancelling')"
+                )
             }
             running |= set(busy_scenes)
             for r in self._db.rows(
@@ -167,7 +171,7 @@ class JobQueue:
                 raise ValueError(f"unknown job state {state!r}")
             sets.append("state=?")
             args.append(state)
-            if state in ("done", "failed"):
+            if state in _FINAL:
                 sets.append("finished_at=?")
                 args.append(time.time())
         if progress is not None:
@@ -183,8 +187,27 @@ class JobQueue:
             self._db.run(f"UPDATE jobs SET {', '.join(sets)} WHERE id=?", (*args, job_id))
 
     def requeue_running(self) -> int:
-        """Jobs a dead process left running go back to the queue (restart)."""
-        return self._db.run("UPDATE jobs SET state='queued' WHERE state='running'")
+        """Jobs a stopped process left running go back to the queue (restart); those it was
+        asked to cancel are cancelled."""
+        with self._db.transaction():
+            self._db.run(
+                "UPDATE jobs SET state='cancelled', finished_at=? WHERE state='cancelling'",
+                (time.time(),),
+            )
+            return self._db.run("UPDATE jobs SET state='queued' WHERE state='running'")
+
+    def cancel(self, job_id: str) -> JobRow | None:
+        """Cancel a job: a queued one is ``cancelled`` at once, a running one becomes
+        ``cancelling`` (its runner stops it between two units); a finished one stays as it
+        is. Returns the job as it is now."""
+        with self._db.transaction():
+            self._db.run(
+                "UPDATE jobs SET state='cancelled', finished_at=? WHERE id=? AND state='queued'",
+                (time.time(), job_id),
+            )
+            self._db.run("UPDATE jobs SET state='cancelling' WHERE id=? AND state='running'",
+                         (job_id,))  # fmt: skip
+        return self.job(job_id)
 
     def counts(self) -> dict[str, int]:
         """For metrics: the number of jobs in each state that has any."""

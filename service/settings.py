@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pydantic import Field
+from dask.utils import parse_bytes
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 __all__ = ["Settings"]
@@ -19,6 +20,33 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(default=8000, ge=1, le=65535)
     max_upload_mb: float = Field(default=256.0, gt=0, description="largest request body")
-    workers: int = Field(default=1, ge=1, le=64, description="job worker processes")
+    workers: int = Field(
+        default=2, ge=1, le=64,
+        description="Dask worker processes the service starts (when it joins no scheduler)",
+    )  # fmt: skip
+    worker_memory: str = Field(
+        default="auto",
+        description="memory limit of each worker it starts, e.g. 2GiB (auto: the machine's "
+        "memory divided among them); a worker over it is restarted",
+    )
+    scheduler: str | None = Field(
+        default=None,
+        description="tcp://HOST:PORT of a running Dask scheduler to join instead of starting "
+        "workers (the store must be on a file system every worker sees)",
+    )
+    jobs: int = Field(default=2, ge=1, le=64, description="jobs carried out at once")
     cache_mb: float = Field(default=512.0, gt=0, description="tile cache of each job")
-    poll_s: float = Field(default=0.1, gt=0, description="how often the dispatcher looks")
+    poll_s: float = Field(default=0.1, gt=0, description="how often the job runner looks")
+
+    @field_validator("worker_memory")
+    @classmethod
+    def _memory(cls, value: str) -> str:
+        if value != "auto":
+            try:
+                if parse_bytes(value) <= 0:
+                    raise ValueError
+            except (ValueError, TypeError):
+                raise ValueError(
+                    f"must be a size such as 2GiB or 512MB, or auto; got {value!r}"
+                ) from None
+        return value

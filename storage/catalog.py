@@ -47,7 +47,7 @@ CREATE TABLE IF NOT EXISTS tile_scans(
 CREATE INDEX IF NOT EXISTS tile_scans_scan ON tile_scans(scene_id, scan_id);
 CREATE TABLE IF NOT EXISTS journal(
     scene_id TEXT NOT NULL, tile INTEGER NOT NULL, PRIMARY KEY(scene_id, tile)) WITHOUT ROWID;
-CREATE TABLE IF NOT EXISTS publishing(scene_id TEXT PRIMARY KEY);
+CREATE TABLE IF NOT EXISTS publishing(scene_id TEXT PRIMARY KEY, attempt TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS tile_epochs(
     scene_id TEXT NOT NULL, tile INTEGER NOT NULL, epoch INTEGER NOT NULL,
     PRIMARY KEY(scene_id, tile)) WITHOUT ROWID;
@@ -324,17 +324,23 @@ class Catalog:
         )
 
     # --- journal and epochs -------------------------------------------------------------------
-    def set_publishing(self, scene_id: str, publishing: bool) -> None:
-        """Mark (or clear) that the scene's staged chunks belong to a committed checkpoint
-        and are to be published (docs/storage.md)."""
-        if publishing:
-            self._db.execute("INSERT OR IGNORE INTO publishing(scene_id) VALUES(?)", (scene_id,))
-        else:
+    def set_publishing(self, scene_id: str, attempt: str | None) -> None:
+        """Record (or, with None, clear) that the chunks the attempt ``attempt`` staged belong
+        to a committed checkpoint and are to be published (docs/storage.md)."""
+        if attempt is None:
             self._db.execute("DELETE FROM publishing WHERE scene_id=?", (scene_id,))
+        else:
+            self._db.execute(
+                "INSERT OR REPLACE INTO publishing(scene_id, attempt) VALUES(?,?)",
+                (scene_id, attempt),
+            )
 
-    def publishing(self, scene_id: str) -> bool:
-        row = self._db.execute("SELECT 1 FROM publishing WHERE scene_id=?", (scene_id,)).fetchone()
-        return row is not None
+    def publishing(self, scene_id: str) -> str | None:
+        """The attempt whose staged chunks are to be published, if any."""
+        row = self._db.execute(
+            "SELECT attempt FROM publishing WHERE scene_id=?", (scene_id,)
+        ).fetchone()
+        return None if row is None else str(row[0])
 
     def journal(self, scene_id: str) -> np.ndarray:
         """Tiles a version-1 store had in flight when it was killed (that layout wrote tiles

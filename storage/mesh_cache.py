@@ -8,25 +8,23 @@ re-meshes only the tiles whose epoch moved (DESIGN.md invariant 7).
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
-from rangefuse.engine import FusionParams, GridSpec, PreparedScan
+from rangefuse.engine import GridSpec
 from rangefuse.engine.grid import pack_keys, unpack_keys
 from rangefuse.engine.meshing import (
     HALO_TILES,
     Mesh,
     TileMeshes,
     mesh_region,
-    mesh_tiles,
     stitch,
     tiles_to_mesh,
 )
-from rangefuse.engine.volume import TileStore
 
 from .catalog import Catalog
 
-__all__ = ["MeshCache"]
+__all__ = ["MeshCache", "encode_tile_mesh"]
 
 
 class MeshCache:
@@ -47,20 +45,20 @@ class MeshCache:
 
     def extract(
         self,
-        store: TileStore,
+        existing: np.ndarray,
         grid: GridSpec,
-        params: FusionParams,
-        scans_for: Callable[[np.ndarray], Iterable[PreparedScan]],
+        mesh: Callable[[list[np.ndarray]], list[list[bytes]]],
         *,
         refine: bool,
         bounds: Sequence[float] | None,
         batch: int,
     ) -> tuple[Mesh, dict[str, int]]:
-        """The surface as one mesh, re-meshing (``batch`` tiles at a time) only the tiles
-        whose epoch moved since they were meshed with the same options; returns the mesh and
-        counts. ``scans_for(keys)`` gives the scans that may inform those tiles."""
+        """The surface of a volume whose tiles are ``existing`` as one mesh, re-meshing only
+        the tiles whose epoch moved since they were meshed with the same options (``batch``
+        tiles per call of ``mesh``, which returns each batch's tile meshes encoded by
+        :func:`encode_tile_mesh`); returns the mesh and counts."""
         lo, hi = mesh_region(grid, bounds)
-        keys = tiles_to_mesh(store.keys(), grid, lo, hi)
+        keys = tiles_to_mesh(existing, grid, lo, hi)
         packed = pack_keys(keys)
         options = json.dumps(
             {"refine": bool(refine), "bounds": None if bounds is None else list(bounds)}
@@ -74,28 +72,22 @@ class MeshCache:
             ],
             np.bool_,
         )
-        parts = []
-        if hit.any():
-            parts.append(_decode(keys[hit], [cached[p][1] for p in packed[hit].tolist()]))
+        blobs = {p: cached[p][1] for p in packed[hit].tolist()}
         todo = np.flatnonzero(~hit)
-        for start in range(0, len(todo), batch):
-            rows = todo[start : start + batch]
-            tm = mesh_tiles(
-                store, grid, params, scans_for(keys[rows]) if refine else (), keys=keys[rows],
-                refine=refine, bounds=bounds,
-            )  # fmt: skip
-            order = np.searchsorted(pack_keys(tm.keys), packed[rows])
+        batches = [todo[start : start + batch] for start in range(0, len(todo), batch)]
+        for rows, meshes in zip(batches, mesh([keys[rows] for rows in batches]), strict=True):
             entries = [
-                (int(packed[r]), int(epochs[r]), _encode(tm, int(n)))
-                for r, n in zip(rows.tolist(), order.tolist(), strict=True)
+                (int(packed[r]), int(epochs[r]), blob)
+                for r, blob in zip(rows.tolist(), meshes, strict=True)
             ]
             self.catalog.mesh_cache_put(self.scene_id, options, entries)
-            parts.append(tm)
-        counts = {"tiles": len(keys), "reused": int(hit.sum()), "meshed": len(todo)}
-        return stitch(parts), counts
+            blobs.update((p, blob) for p, _, blob in entries)
+        mesh_of_all = stitch(_decode(keys, [blobs[p] for p in packed.tolist()]))
+        return mesh_of_all, {"tiles": len(keys), "reused": int(hit.sum()), "meshed": len(todo)}
 
 
-def _encode(tm: TileMeshes, n: int) -> bytes:
+def encode_tile_mesh(tm: TileMeshes, n: int) -> bytes:
+    """Tile ``n`` of ``tm`` as the bytes the cache keeps."""
     v0, v1 = int(tm.vertex_offsets[n]), int(tm.vertex_offsets[n + 1])
     f0, f1 = int(tm.face_offsets[n]), int(tm.face_offsets[n + 1])
     head = np.array([v1 - v0, f1 - f0], np.int64)

@@ -22,33 +22,18 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections import OrderedDict
-from collections.abc import Callable, Iterator, Sequence
+import shutil
+import uuid
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rangefuse.engine import (
-    DenseGrid,
-    FusionParams,
-    GridSpec,
-    PreparedScan,
-    Scan,
-    ScanNotFoundError,
-    prepare_scan,
-)
+from rangefuse.engine import DenseGrid, FusionParams, GridSpec, Scan, ScanNotFoundError
 from rangefuse.engine.grid import pack_keys, unpack_keys
-from rangefuse.engine.meshing import Mesh
-from rangefuse.engine.planner import (
-    Plan,
-    Sphere,
-    View,
-    plan_add,
-    plan_rebuild,
-    plan_remove,
-    scans_near,
-)
+from rangefuse.engine.meshing import HALO_TILES, Mesh
+from rangefuse.engine.planner import Plan, Sphere, View, scans_near, tiles_near
 from rangefuse.engine.volume import dense_logodds
 
 from .archive import ScanArchive
@@ -65,7 +50,18 @@ from .store import (
 )
 from .tile_cache import cache_tiles
 from .tile_store import ZarrTileStore
-from .units import InProcess, Runner, TileUnit, UnitResult, integrate_unit, make_units
+from .units import (
+    InProcess,
+    MeshUnit,
+    PlanUnit,
+    Runner,
+    TileUnit,
+    UnitResult,
+    integrate_unit,
+    make_units,
+    mesh_unit,
+    plan_unit,
+)
 from .zarr_tiles import ZarrTiles
 
 __all__ = ["GROUP_SCANS", "Scene", "SceneReport", "open_scene", "open_store"]
@@ -74,6 +70,8 @@ __all__ = ["GROUP_SCANS", "Scene", "SceneReport", "open_scene", "open_store"]
 GROUP_SCANS = 8
 #: The halo of the plans (engine.planner): the scene keeps tile meshes up to date.
 MESH_HALO = 1
+#: Fewest tiles a meshing unit takes (each loads the scans near its tiles).
+_MIN_MESH_BATCH = 256
 
 Progress = Callable[[int, int], None]
 
@@ -87,6 +85,13 @@ class SceneReport:
     tiles_written: int = 0
     tiles_created: int = 0
     tiles_deleted: int = 0
+
+
+def _around(existing: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Mask of the tiles ``existing`` among ``keys`` and their upper neighbours (the tiles a
+    mesh of ``keys`` reads)."""
+    wanted = np.concatenate([keys + d for d in HALO_TILES])
+    return np.isin(pack_keys(existing), pack_keys(wanted))
 
 
 def _gather(
@@ -109,6 +114,7 @@ class _Work:
     plan: Plan
     written: np.ndarray
     units: list[TileUnit]
+    staging: Staging
 
 
 class Scene:
@@ -140,12 +146,11 @@ class Scene:
         self.group_path = store.scene_path(scene_id) / "scene.zarr"
         self.tiles = ZarrTiles.open(self.group_path)
         self.tile_store = ZarrTileStore(self.tiles, self.catalog, scene_id)
-        self.staging = Staging(store.scene_path(scene_id) / "staging", self.tiles)
+        self.staging_root = store.scene_path(scene_id) / "staging"
         self.archive = ScanArchive(self.group_path)
         self.meshes = MeshCache(self.catalog, scene_id)
         self.cache_mb = cache_mb
         self.runner: Runner = runner if runner is not None else InProcess()
-        self._prepared: OrderedDict[str, PreparedScan] = OrderedDict()
         self.recovered = self._recover()
 
     def close(self) -> None:
@@ -171,17 +176,6 @@ class Scene:
         """Archive a scan durably and record it as ``stored`` (see
         :meth:`~storage.store.Store.store_scan`); :meth:`integrate_pending` fuses it."""
         return self.store.store_scan(self.scene_id, scan_id, scan, name)
-
-    def _load(self, scan_id: str) -> PreparedScan:
-        prepared = self._prepared.get(scan_id)
-        if prepared is None:
-            prepared = prepare_scan(self.archive.get(scan_id), self.params)
-            self._prepared[scan_id] = prepared
-            while len(self._prepared) > 2:  # memory is one scan or two, not the scene
-                self._prepared.popitem(last=False)
-        else:
-            self._prepared.move_to_end(scan_id)
-        return prepared
 
     def _spheres(self, states: Sequence[str] = ("fused",)) -> list[Sphere]:
         """The bounding spheres recorded when the scans were stored."""
@@ -215,6 +209,7 @@ class Scene:
         informed, updates = _gather(work.units, results)
         plan = work.plan
         self._checkpoint(
+            work.staging,
             informed=informed,
             owned={s: pack_keys(plan.keys[rows]) for s, rows in plan.owned.items()},
             fused=new_ids,
@@ -227,15 +222,21 @@ class Scene:
 
     def _group_work(self, new_ids: list[str]) -> _Work:
         """The plan of fusing the scans ``new_ids`` and its units of work."""
-        plan = plan_add(
-            self.grid, self.tile_keys(), new_ids, self._spheres(), self._load, halo=MESH_HALO
-        )
-        return self._work(plan)
+        existing = self.catalog.tile_keys(self.scene_id)
+        return self._work(self._plan(kind="add", existing=existing, scans=new_ids,
+                                     spheres=self._spheres()))  # fmt: skip
 
-    def _work(self, plan: Plan) -> _Work:
+    def _plan(self, **what: Any) -> tuple[Plan, list[View]]:
+        """A plan and its views, made by a planning unit on the runner."""
+        unit = PlanUnit(str(self.group_path), self.grid.to_dict(), self.params.to_dict(),
+                        halo=MESH_HALO, **what)  # fmt: skip
+        ((plan, views),) = self.runner.map(plan_unit, [unit])
+        return plan, views
+
+    def _work(self, planned: tuple[Plan, list[View]]) -> _Work:
         """A plan's classified steps, the rows whose chunks are staged (created, or in a
         scan's view), and its units of work: the rows split by key (one writer per tile)."""
-        views = list(plan.views(self._load))
+        plan, views = planned
         rows = np.unique(np.concatenate([np.flatnonzero(plan.created), *(v.rows for v in views)]))
         position = np.full(len(plan.keys), -1, np.int64)
         position[rows] = np.arange(len(rows))
@@ -245,22 +246,37 @@ class Scene:
             for v in views
         ]  # fmt: skip
         n_parts = max(1, min(self.runner.workers, len(rows)))
+        # a staging folder of the attempt's own: a unit of an abandoned attempt that still
+        # runs somewhere writes where nothing is published
+        self._discard_staging()
+        staging = Staging(self.staging_root / uuid.uuid4().hex[:16], self.tiles)
         units = make_units(
             plan.keys[rows], plan.created[rows], local, n_parts,
-            group_path=str(self.group_path), staging_path=str(self.staging.folder),
+            group_path=str(self.group_path), staging_path=str(staging.folder),
             grid=self.grid.to_dict(), params=self.params.to_dict(),
             cache_mb=self.cache_mb / n_parts,
         )  # fmt: skip
-        return _Work(plan, rows, units)
+        return _Work(plan, rows, units, staging)
 
     def _run(self, units: list[TileUnit]) -> list[UnitResult]:
-        """Run units on the runner, after dropping what an attempt that never reached its
-        checkpoint staged."""
-        self.staging.discard()
         return self.runner.map(integrate_unit, units)
+
+    def _discard_staging(self) -> int:
+        """Drop what attempts that never reached their checkpoint staged; returns the
+        tiles."""
+        staged = sum(len(Staging(f, self.tiles).staged_keys()) for f in self._staged_folders())
+        shutil.rmtree(self.staging_root, ignore_errors=True)
+        return staged
+
+    def _staged_folders(self) -> list[Path]:
+        try:
+            return sorted(p for p in self.staging_root.iterdir() if p.is_dir())
+        except FileNotFoundError:
+            return []
 
     def _checkpoint(
         self,
+        staging: Staging,
         informed: dict[str, np.ndarray],
         owned: dict[str, np.ndarray],
         fused: Sequence[str] = (),
@@ -273,8 +289,8 @@ class Scene:
         none = np.zeros(0, np.int64)
         deleted = none if deleted is None else deleted
         if len(deleted):
-            self.staging.delete(unpack_keys(deleted))
-            self.staging.fsync(unpack_keys(deleted))
+            staging.delete(unpack_keys(deleted))
+            staging.fsync(unpack_keys(deleted))
         with self.catalog.transaction():
             for scan_id in sorted(set(informed) | set(owned)):
                 hit = informed.get(scan_id, none)
@@ -288,13 +304,15 @@ class Scene:
             self.catalog.set_scan_state(self.scene_id, list(fused), "fused")
             self.meshes.bump(np.union1d(none if changed is None else changed, deleted))
             self.catalog.journal_clear(self.scene_id)  # a version-1 journal, now rebuilt
-            self.catalog.set_publishing(self.scene_id, True)
-        self._publish()
+            self.catalog.set_publishing(self.scene_id, staging.folder.name)
+        self._publish(staging.folder.name)
 
-    def _publish(self) -> int:
-        published = self.staging.publish()
+    def _publish(self, attempt: str) -> int:
+        """Publish what the attempt ``attempt`` staged (its checkpoint is committed)."""
+        published = Staging(self.staging_root / attempt, self.tiles).publish()
+        self._discard_staging()  # an abandoned attempt's late writes
         with self.catalog.transaction():
-            self.catalog.set_publishing(self.scene_id, False)
+            self.catalog.set_publishing(self.scene_id, None)
         return published
 
     # --- removal ------------------------------------------------------------------------------
@@ -316,15 +334,18 @@ class Scene:
     def _remove_now(self, scan_id: str) -> SceneReport:
         row = self.catalog.scan(self.scene_id, scan_id)
         assert row is not None
-        plan = plan_remove(
-            self.grid, Sphere(row.id, row.origin, row.reach_m), self.tile_keys(),
-            self.tile_store.owners, halo=MESH_HALO,
-        )  # fmt: skip
-        work = self._work(plan)
+        sphere = Sphere(row.id, row.origin, row.reach_m)
+        existing = self.tile_keys()
+        near = existing[tiles_near(sphere, existing, self.grid)]
+        owners = dict(zip(pack_keys(near).tolist(), self.tile_store.owners(near), strict=True))
+        planned = self._plan(kind="remove", existing=pack_keys(near), spheres=[sphere],
+                             owners=owners)  # fmt: skip
+        plan = planned[0]
+        work = self._work(planned)
         _, updates = _gather(work.units, self._run(work.units))
         written = work.written
         self._checkpoint(
-            informed={}, owned={}, changed=pack_keys(plan.keys[written]),
+            work.staging, informed={}, owned={}, changed=pack_keys(plan.keys[written]),
             deleted=pack_keys(plan.deleted), removed=scan_id,
         )  # fmt: skip
         self.archive.delete(scan_id)
@@ -337,11 +358,11 @@ class Scene:
     def _recover(self) -> dict[str, int]:
         """Bring the scene back to its last committed state after an interruption."""
         report = {"published": 0, "discarded": 0, "partials": 0, "rebuilt_tiles": 0}
-        if self.catalog.publishing(self.scene_id):  # committed, publish cut short
-            report["published"] = self._publish()
+        attempt = self.catalog.publishing(self.scene_id)
+        if attempt is not None:  # committed, publish cut short
+            report["published"] = self._publish(attempt)
         else:  # staged by a group that never reached its checkpoint
-            report["discarded"] = len(self.staging.staged_keys())
-            self.staging.discard()
+            report["discarded"] = self._discard_staging()
         legacy = self.catalog.journal(self.scene_id)  # a version-1 store killed mid-group
         if len(legacy):
             report["partials"] = self.tiles.remove_partials()
@@ -363,12 +384,13 @@ class Scene:
         for n, t in enumerate(live.tolist()):
             for scan_id, _ in info[t]:
                 informing.setdefault(scan_id, []).append(n)
-        plan = plan_rebuild(
-            self.grid, unpack_keys(live),
-            {s: np.array(rows, np.int64) for s, rows in informing.items()},
+        planned = self._plan(
+            kind="rebuild", existing=live,
+            informing={s: np.array(rows, np.int64) for s, rows in informing.items()},
         )  # fmt: skip
-        self._run(self._work(plan).units)
-        self._checkpoint(informed={}, owned={}, changed=live, deleted=tiles[~owned])
+        work = self._work(planned)
+        self._run(work.units)
+        self._checkpoint(work.staging, informed={}, owned={}, changed=live, deleted=tiles[~owned])
 
     # --- reading ------------------------------------------------------------------------------
     def tile_keys(self) -> np.ndarray:
@@ -378,20 +400,40 @@ class Scene:
         """The fused log-odds as a dense grid (see :func:`engine.dense_logodds`)."""
         return dense_logodds(self.tile_store, self.grid, bounds)
 
-    def _scans_for(self, keys: np.ndarray) -> Iterator[PreparedScan]:
-        """The fused scans that may inform the tiles ``keys`` (for edge refinement)."""
-        for scan_id in scans_near(self._spheres(), keys, self.grid):
-            yield self._load(scan_id)
-
     def extract_mesh(
         self, *, refine: bool = True, bounds: Sequence[float] | None = None
     ) -> tuple[Mesh, dict[str, int]]:
-        """The surface as one mesh, re-meshing only tiles whose data (or halo) changed since
-        they were last meshed with the same options; returns the mesh and counts."""
-        batch = max(1, cache_tiles(self.cache_mb, self.grid.tile_size) // 24)
+        """The surface as one mesh, re-meshing (in units of work on the runner) only tiles
+        whose data (or halo) changed since they were last meshed with the same options;
+        returns the mesh and counts."""
+        existing = self.tile_keys()
+        spheres = self._spheres()
+
+        def mesh(batches: list[np.ndarray]) -> list[list[bytes]]:
+            units = [self._mesh_unit(keys, existing, spheres, refine, bounds) for keys in batches]
+            return self.runner.map(mesh_unit, units)
+
+        # a batch's tiles and their neighbours in a 24th of the cache, but not so few that
+        # loading the scans for each batch costs more than meshing it
+        batch = max(_MIN_MESH_BATCH, cache_tiles(self.cache_mb, self.grid.tile_size) // 24)
         return self.meshes.extract(
-            self.tile_store, self.grid, self.params, self._scans_for, refine=refine,
-            bounds=bounds, batch=batch,
+            existing, self.grid, mesh, refine=refine, bounds=bounds, batch=batch
+        )
+
+    def _mesh_unit(
+        self,
+        keys: np.ndarray,
+        existing: np.ndarray,
+        spheres: list[Sphere],
+        refine: bool,
+        bounds: Sequence[float] | None,
+    ) -> MeshUnit:
+        """Meshing the tiles ``keys``: the tiles it reads, the scans that may inform them."""
+        return MeshUnit(
+            str(self.group_path), self.grid.to_dict(), self.params.to_dict(), keys,
+            data_keys=existing[_around(existing, keys)],
+            spheres=[s for s in spheres if scans_near([s], keys, self.grid)],
+            refine=refine, bounds=None if bounds is None else list(bounds),
         )  # fmt: skip
 
     def info(self) -> dict[str, Any]:

@@ -1,33 +1,133 @@
-"""Units of work: a plan's tiles split among workers, each part integrated on its own
-(docs/storage.md, "Units that can run again"; DESIGN.md "Scale-out").
+"""Units of work: everything a scene computes, as plain data a runner can send anywhere
+(docs/storage.md, "Units that can run again"; docs/scale-out.md).
 
-A :class:`TileUnit` is plain, picklable data: where the scene lives, which tiles, which
-scans to add to or subtract from each. :func:`integrate_unit` runs one wherever the
-store's files are visible: in this process, in a worker process, on a cluster. It reads
-the committed chunks and writes the tiles it changes to the scene's staging area, so a unit
-killed at any point and run again gives the same bits; the scene's checkpoint publishes
-the staged chunks once every unit of the group has finished.
+Three kinds, each a picklable dataclass and a function of it alone, run wherever the
+store's files are visible (in this process, on the workers of a Dask cluster) and never
+touching the catalog, which stays with the process that orchestrates the scene:
+
+* :class:`PlanUnit` / :func:`plan_unit`: the planner's plan of a change and its views
+  (allocation and tile classification, engine.planner);
+* :class:`TileUnit` / :func:`integrate_unit`: some tiles of a plan, with the scans to add or
+  subtract in each. It reads the committed chunks and writes the tiles it changes to the
+  scene's staging area, so a unit killed at any point and run again gives the same bits;
+  the scene's checkpoint publishes the staged chunks once every unit has finished;
+* :class:`MeshUnit` / :func:`mesh_unit`: the meshes of some tiles.
+
+A :class:`Runner` runs a list of units and returns their results in order.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
-from rangefuse.engine import FusionParams, GridSpec, prepare_scan
+from rangefuse.engine import FusionParams, GridSpec, PreparedScan, prepare_scan
 from rangefuse.engine.fusion import integrate_seen
-from rangefuse.engine.grid import unpack_keys
-from rangefuse.engine.planner import View
+from rangefuse.engine.grid import pack_keys, unpack_keys
+from rangefuse.engine.meshing import mesh_tiles
+from rangefuse.engine.planner import (
+    Plan,
+    Sphere,
+    View,
+    plan_add,
+    plan_rebuild,
+    plan_remove,
+    scans_near,
+)
 
 from .archive import ScanArchive
+from .mesh_cache import encode_tile_mesh
 from .staging import Staging
 from .tile_cache import TileCache
 from .zarr_tiles import ZarrTiles
 
-__all__ = ["InProcess", "Runner", "TileUnit", "UnitResult", "integrate_unit", "make_units"]
+__all__ = [
+    "InProcess",
+    "MeshUnit",
+    "PlanUnit",
+    "Runner",
+    "TileUnit",
+    "UnitResult",
+    "integrate_unit",
+    "make_units",
+    "mesh_unit",
+    "plan_unit",
+]
+
+Item = TypeVar("Item")
+Result = TypeVar("Result")
+
+
+class _Scans:
+    """A scene's archived scans, prepared for the kernels on first use; the last two kept
+    (a unit's memory is one scan or two, not the scene)."""
+
+    def __init__(self, group: Path, params: FusionParams) -> None:
+        self.archive = ScanArchive(group)
+        self.params = params
+        self._prepared: OrderedDict[str, PreparedScan] = OrderedDict()
+
+    def __call__(self, scan_id: str) -> PreparedScan:
+        prepared = self._prepared.get(scan_id)
+        if prepared is None:
+            prepared = prepare_scan(self.archive.get(scan_id), self.params)
+            self._prepared[scan_id] = prepared
+            while len(self._prepared) > 2:
+                self._prepared.popitem(last=False)
+        else:
+            self._prepared.move_to_end(scan_id)
+        return prepared
+
+
+# --------------------------------------------------------------------------------------------
+# planning
+
+
+@dataclass(frozen=True)
+class PlanUnit:
+    """Plan a change of a scene (engine.planner) with the one-voxel halo of a scene that
+    keeps tile meshes. ``kind`` is ``"add"`` (``existing``: packed keys of the tiles;
+    ``scans``: the new ones; ``spheres``: the fused ones), ``"remove"`` (``existing``: the
+    tiles near the scan, whose ``owners`` are given by packed key; ``spheres``: the scan's)
+    or ``"rebuild"`` (``existing``: the tiles; ``informing``: rows each scan may inform)."""
+
+    group_path: str
+    grid: dict[str, Any]
+    params: dict[str, Any]
+    kind: str
+    existing: np.ndarray
+    scans: list[str] = field(default_factory=list)
+    spheres: list[Sphere] = field(default_factory=list)
+    owners: dict[int, frozenset[str]] = field(default_factory=dict)
+    informing: dict[str, np.ndarray] = field(default_factory=dict)
+    halo: int = 1
+
+
+def plan_unit(unit: PlanUnit) -> tuple[Plan, list[View]]:
+    """The plan and its views (without the per-quad bounds, which stay where they were
+    computed)."""
+    grid = GridSpec.from_dict(unit.grid)
+    load = _Scans(Path(unit.group_path), FusionParams.from_dict(unit.params))
+    keys = unpack_keys(np.asarray(unit.existing, np.int64))
+    if unit.kind == "add":
+        plan = plan_add(grid, keys, unit.scans, unit.spheres, load, halo=unit.halo)
+    elif unit.kind == "remove":
+        owners = unit.owners
+
+        def owners_of(tiles: np.ndarray) -> list[frozenset[str]]:
+            return [owners[p] for p in pack_keys(tiles).tolist()]
+
+        (sphere,) = unit.spheres
+        plan = plan_remove(grid, sphere, keys, owners_of, halo=unit.halo)
+    elif unit.kind == "rebuild":
+        plan = plan_rebuild(grid, keys, unit.informing, halo=unit.halo)
+    else:
+        raise ValueError(f"unknown kind of plan {unit.kind!r}")
+    return plan, [replace(view, bounds=None) for view in plan.views(load)]
 
 
 @dataclass(frozen=True)
@@ -131,14 +231,75 @@ def _partition(keys: np.ndarray, n: int) -> np.ndarray:
     return np.mod(h, n)
 
 
+# --------------------------------------------------------------------------------------------
+# meshing
+
+
+@dataclass(frozen=True)
+class MeshUnit:
+    """Mesh the tiles ``keys`` of a scene: ``data_keys`` are the tiles that exist among them
+    and their upper neighbours (the one-voxel halo), ``spheres`` the fused scans that may
+    inform them (edge refinement)."""
+
+    group_path: str
+    grid: dict[str, Any]
+    params: dict[str, Any]
+    keys: np.ndarray
+    data_keys: np.ndarray
+    spheres: list[Sphere]
+    refine: bool
+    bounds: list[float] | None
+
+
+class _ReadOnlyTiles:
+    """Tiles of a Zarr array as an engine TileStore, for reading those in ``keys``."""
+
+    def __init__(self, tiles: ZarrTiles, keys: np.ndarray) -> None:
+        self._tiles = tiles
+        self._keys = keys
+        self.tile_size = tiles.tile_size
+
+    def keys(self) -> np.ndarray:
+        return self._keys
+
+    def read(self, keys: np.ndarray) -> np.ndarray:
+        return self._tiles.read(keys)
+
+
+def mesh_unit(unit: MeshUnit) -> list[bytes]:
+    """The mesh of each tile of ``unit.keys``, in order, encoded for the scene's mesh cache
+    (:func:`storage.mesh_cache.encode_tile_mesh`)."""
+    grid = GridSpec.from_dict(unit.grid)
+    params = FusionParams.from_dict(unit.params)
+    group = Path(unit.group_path)
+    store = _ReadOnlyTiles(ZarrTiles.open(group), unit.data_keys)
+    load = _Scans(group, params)
+
+    def scans() -> Iterator[PreparedScan]:
+        for scan_id in scans_near(unit.spheres, unit.keys, grid):
+            yield load(scan_id)
+
+    tm = mesh_tiles(
+        store, grid, params, scans() if unit.refine else (), keys=unit.keys, refine=unit.refine,
+        bounds=unit.bounds,
+    )  # fmt: skip
+    order = np.searchsorted(pack_keys(tm.keys), pack_keys(unit.keys))
+    return [encode_tile_mesh(tm, int(n)) for n in order.tolist()]
+
+
+# --------------------------------------------------------------------------------------------
+# runners
+
+
 class Runner(Protocol):
-    """Runs units of work: in this process, on worker processes, on a cluster."""
+    """Runs units of work: in this process, or on a cluster (service.cluster)."""
 
-    workers: int
+    @property
+    def workers(self) -> int:
+        """How many units it runs at once (a scene splits its tiles into as many parts)."""
+        ...
 
-    def map(
-        self, fn: Callable[[TileUnit], UnitResult], units: list[TileUnit]
-    ) -> list[UnitResult]: ...
+    def map(self, fn: Callable[[Item], Result], units: Sequence[Item]) -> list[Result]: ...
 
 
 class InProcess:
@@ -146,5 +307,5 @@ class InProcess:
 
     workers = 1
 
-    def map(self, fn: Callable[[TileUnit], UnitResult], units: list[TileUnit]) -> list[UnitResult]:
+    def map(self, fn: Callable[[Item], Result], units: Sequence[Item]) -> list[Result]:
         return [fn(u) for u in units]

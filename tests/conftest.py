@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import pytest
+
+# first: it points numba's cache at the machine's one folder (docs/scale-out.md), shared with
+# the command line, the service and the workers these tests start
+import rangefuse.service  # noqa: F401
 from rangefuse.engine.synth import SyntheticDataset, make_dataset
 
 

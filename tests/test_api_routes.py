@@ -23,7 +23,7 @@ def test_every_json_route_has_a_response_model() -> None:
         r for router in ROUTERS for r in router.routes
         if isinstance(r, APIRoute) and r.include_in_schema
     ]  # fmt: skip
-    assert len(routes) == 15
+    assert len(routes) == 16
     binary = {"/metrics", "/v1/scenes/{scene_id}/mesh", "/v1/scenes/{scene_id}/slice"}
     for route in routes:
         if route.path in binary or route.status_code == 204:

@@ -46,7 +46,6 @@ def run_subprocess(*argv: Any, module: bool = False) -> subprocess.CompletedProc
     """The installed ``rangefuse`` script, or ``python -m rangefuse.service.cli`` with
     ``module``."""
     env = dict(os.environ)
-    env.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba_cache"))
     head = [sys.executable, "-m", "rangefuse.service.cli"] if module else [str(RANGEFUSE)]
     return subprocess.run(
         [*head, *map(str, argv)],

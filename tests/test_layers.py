@@ -21,8 +21,10 @@ FORBIDDEN = {
         "service",
         "uvicorn",
         "dask",
+        "distributed",
     },
-    "storage": {"service", "fastapi", "uvicorn"},
+    # storage runs on the workers but knows nothing of Dask (service.cluster does)
+    "storage": {"service", "fastapi", "uvicorn", "dask", "distributed"},
 }
 
 

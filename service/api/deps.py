@@ -25,14 +25,14 @@ from rangefuse.storage import Store
 from rangefuse.storage.catalog import SceneRow
 
 from ..accounts import Accounts
-from ..jobs import Dispatcher
+from ..jobs import JobRunner
 from ..queue import JobQueue
 from ..settings import Settings
 
 __all__ = [
     "AccountsDep",
     "CurrentTenant",
-    "DispatcherDep",
+    "JobsDep",
     "QueueDep",
     "Services",
     "SettingsDep",
@@ -61,13 +61,13 @@ class ThreadStores:
 
 @dataclass
 class Services:
-    """What the routes share: settings, stores, accounts, the job queue and its dispatcher."""
+    """What the routes share: settings, stores, accounts, the job queue and its runner."""
 
     settings: Settings
     store: ThreadStores
     accounts: Accounts
     queue: JobQueue
-    dispatcher: Dispatcher
+    jobs: JobRunner
     #: Uploads with an idempotency key are stored one at a time (a retry waits for the first).
     upload_lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -93,8 +93,8 @@ def get_queue(request: Request) -> JobQueue:
     return _services(request).queue
 
 
-def get_dispatcher(request: Request) -> Dispatcher:
-    return _services(request).dispatcher
+def get_jobs(request: Request) -> JobRunner:
+    return _services(request).jobs
 
 
 def get_upload_lock(request: Request) -> threading.Lock:
@@ -105,7 +105,7 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 StoreDep = Annotated[StoreOpener, Depends(get_store)]
 AccountsDep = Annotated[Accounts, Depends(get_accounts)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
-DispatcherDep = Annotated[Dispatcher, Depends(get_dispatcher)]
+JobsDep = Annotated[JobRunner, Depends(get_jobs)]
 UploadLockDep = Annotated[threading.Lock, Depends(get_upload_lock)]
 
 

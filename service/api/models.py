@@ -112,7 +112,8 @@ class Problem(BaseModel):
 
 
 class Health(BaseModel):
-    status: str
+    status: str = Field(description="ok, or why jobs cannot make progress")
+    workers: int = Field(description="Dask workers that can run units of work now")
 
 
 class NoiseOut(BaseModel):
@@ -222,7 +223,10 @@ class JobOut(BaseModel):
     id: str
     kind: str = Field(description="integrate, remove or reconstruct")
     scene_id: str | None
-    state: str = Field(description="queued, running, done or failed")
+    state: str = Field(
+        description="queued, running, cancelling (a running job asked to stop), done, failed "
+        "or cancelled"
+    )
     progress: float = Field(description="0 to 1")
     created_at: float
     error: str | None = None
@@ -239,7 +243,8 @@ _PROBLEMS = {
     400: "a malformed upload (the message names the part and the problem)",
     401: "no valid bearer token",
     404: "no such id (another tenant's ids look the same)",
-    409: "the store refused (a conflict), or no reconstruction yet",
+    409: "the store refused (a conflict), no reconstruction yet, or a job already finished",
+    503: "no worker can run jobs",
     413: "a request body over RANGEFUSE_MAX_UPLOAD_MB",
     422: "an invalid value (the message names the field and the problem)",
 }

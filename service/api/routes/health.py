@@ -5,8 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from fastapi import APIRouter, Response
+from fastapi.responses import JSONResponse
 
-from ..deps import CurrentTenant, QueueDep, StoreDep
+from ..deps import CurrentTenant, JobsDep, QueueDep, StoreDep
 from ..models import Health, problems
 
 __all__ = ["router"]
@@ -23,10 +24,15 @@ def index() -> Response:
     return Response(_PAGE, media_type="text/html; charset=utf-8")
 
 
-@router.get("/healthz", response_model=Health)
-def healthz() -> Health:
-    """Liveness: answers without a token."""
-    return Health(status="ok")
+@router.get("/healthz", response_model=Health, responses={503: {"model": Health}})
+def healthz(jobs: JobsDep) -> Health | JSONResponse:
+    """Whether jobs can make progress (answers without a token): 503 while no worker of the
+    cluster can run units of work."""
+    workers = jobs.workers()
+    if workers == 0:
+        body = Health(status="no worker can run jobs", workers=0)
+        return JSONResponse(body.model_dump(), status_code=503)
+    return Health(status="ok", workers=workers)
 
 
 @router.get(
@@ -46,7 +52,7 @@ def metrics(who: CurrentTenant, store: StoreDep, queue: QueueDep) -> Response:
         lines.append(f'rangefuse_scans{{state="{state}"}} {counts["scans"].get(state, 0)}')
     lines += ["# TYPE rangefuse_tiles gauge", f"rangefuse_tiles {counts['tiles']}"]
     lines.append("# TYPE rangefuse_jobs gauge")
-    for state in ("queued", "running", "done", "failed"):
+    for state in ("queued", "running", "cancelling", "done", "failed", "cancelled"):
         lines.append(f'rangefuse_jobs{{state="{state}"}} {jobs.get(state, 0)}')
     updates = 0.0
     seconds = 0.0

@@ -6,7 +6,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Query
 
-from ..deps import CurrentTenant, QueueDep
+from ..deps import CurrentTenant, JobsDep, QueueDep
 from ..models import JobOut, problems
 
 __all__ = ["router"]
@@ -31,3 +31,23 @@ def get_job(job_id: str, who: CurrentTenant, queue: QueueDep) -> JobOut:
     if job is None or job.tenant != who:
         raise HTTPException(404, f"no job {job_id!r}")
     return JobOut.from_row(job)
+
+
+@router.post(
+    "/{job_id}/cancel",
+    status_code=202,
+    response_model=JobOut,
+    response_model_exclude_unset=True,
+    responses=problems(404, 409),
+)
+def cancel_job(job_id: str, who: CurrentTenant, queue: QueueDep, jobs: JobsDep) -> JobOut:
+    """Cancel a job: a queued one at once (``cancelled``), a running one between two of its
+    units of work (``cancelling``, then ``cancelled``; nothing it did is committed)."""
+    job = queue.job(job_id)
+    if job is None or job.tenant != who:
+        raise HTTPException(404, f"no job {job_id!r}")
+    if job.state in ("done", "failed", "cancelled"):
+        raise HTTPException(409, f"job {job_id!r} already finished: {job.state}")
+    cancelled = jobs.cancel(job_id, queue)
+    assert cancelled is not None
+    return JobOut.from_row(cancelled)

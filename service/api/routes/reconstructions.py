@@ -13,7 +13,7 @@ from rangefuse.engine.meshing import Mesh
 from rangefuse.storage.meshes import mesh_bytes
 
 from ...jobs import new_id
-from ..deps import CurrentTenant, DispatcherDep, QueueDep, TenantScene
+from ..deps import CurrentTenant, JobsDep, QueueDep, TenantScene
 from ..models import Accepted, ReconstructionIn, problems
 
 __all__ = ["router"]
@@ -31,7 +31,7 @@ def reconstruct(
     scene: TenantScene,
     who: CurrentTenant,
     queue: QueueDep,
-    dispatcher: DispatcherDep,
+    jobs: JobsDep,
     body: ReconstructionIn | None = None,
 ) -> Accepted:
     """Fuse what is pending and mesh the scene (a job); the mesh is then at ``.../mesh``."""
@@ -41,7 +41,7 @@ def reconstruct(
         GridSpec(grid.voxel_size, grid.tile_size, "mapping", tuple(body.bounds))  # type: ignore[arg-type]
     payload = {"bounds": body.bounds, "refine": body.refine}
     job = queue.create_job(new_id(), who, scene.id, "reconstruct", payload)
-    dispatcher.wake()
+    jobs.wake()
     return Accepted.model_validate({"job": {"id": job.id}})
 
 

@@ -17,7 +17,7 @@ from ...uploads import UploadedScan, decode_scan
 from ..deps import (
     AccountsDep,
     CurrentTenant,
-    DispatcherDep,
+    JobsDep,
     QueueDep,
     SettingsDep,
     StoreDep,
@@ -129,7 +129,7 @@ async def upload_scan(
     store: StoreDep,
     accounts: AccountsDep,
     queue: QueueDep,
-    dispatcher: DispatcherDep,
+    jobs: JobsDep,
     settings: SettingsDep,
     lock: UploadLockDep,
     idempotency_key: Annotated[str | None, Header()] = None,
@@ -144,7 +144,7 @@ async def upload_scan(
     response = await run_in_threadpool(
         _store_upload, store, accounts, queue, lock, scene.id, who, idempotency_key, uploaded
     )
-    dispatcher.wake()
+    jobs.wake()
     return response
 
 
@@ -169,11 +169,11 @@ def delete_scan(
     who: CurrentTenant,
     store: StoreDep,
     queue: QueueDep,
-    dispatcher: DispatcherDep,
+    jobs: JobsDep,
 ) -> Accepted:
     """Remove a scan exactly (a job: the volume becomes what it would be without it)."""
     if store().catalog.scan(scene.id, scan_id) is None:
         raise HTTPException(404, f"no scan {scan_id!r} in scene {scene.id!r}")
     job = queue.create_job(new_id(), who, scene.id, "remove", {"scan_id": scan_id})
-    dispatcher.wake()
+    jobs.wake()
     return Accepted.model_validate({"job": {"id": job.id}})

@@ -1,0 +1,242 @@
+"""Where units of work run: a Dask cluster, started on this machine or joined
+(docs/scale-out.md).
+
+:class:`Cluster` holds a ``dask.distributed`` client, on a ``LocalCluster`` of worker
+processes it starts (each supervised by a nanny, with a memory limit; they exit with this
+process) or on a running scheduler (``tcp://HOST:PORT``). :class:`DaskRunner` runs a scene's
+units of work on it (:class:`storage.units.Runner`): a worker that dies is replaced and its
+units run again, which gives the same bits (docs/storage.md, "Units that can run again"); a
+unit that keeps killing workers fails with a message that says which scans, and what the
+limit was; a runner can be interrupted (a cancelled job, a stopping service).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
+
+from distributed import Client, Future, LocalCluster, wait
+from distributed.scheduler import KilledWorker
+from rangefuse.storage.units import MeshUnit, PlanUnit, TileUnit
+
+__all__ = ["Cluster", "DaskRunner", "RunInterruptedError", "UnitFailedError"]
+
+log = logging.getLogger("rangefuse.cluster")
+
+Item = TypeVar("Item")
+Result = TypeVar("Result")
+
+#: How often a runner looks whether it was interrupted while its units run.
+_POLL_S = 0.2
+
+
+class UnitFailedError(RuntimeError):
+    """A unit of work killed every worker that ran it (the message says which scans)."""
+
+
+class RunInterruptedError(Exception):
+    """The runner was interrupted: its job was cancelled, or the service stops."""
+
+
+def _scans(ids: Sequence[str]) -> str:
+    shown = ", ".join(ids[:8]) + (" ..." if len(ids) > 8 else "")
+    return f"scan {shown}" if len(ids) == 1 else f"scans {shown}"
+
+
+def describe(unit: Any) -> str:
+    """What a unit does, for people: ``scan scan_0007: fusing it``."""
+    if isinstance(unit, TileUnit):
+        ids = sorted({scan_id for scan_id, *_ in unit.steps})
+        verb = "removing" if unit.steps and all(s[3] < 0 for s in unit.steps) else "fusing"
+        return f"{_scans(ids)}: {verb} {'it' if len(ids) == 1 else 'them'}"
+    if isinstance(unit, PlanUnit):
+        ids = unit.scans or [s.scan_id for s in unit.spheres]
+        return f"{_scans(ids) if ids else 'tiles'}: planning the {unit.kind}"
+    if isinstance(unit, MeshUnit):
+        return f"{len(unit.keys)} tiles: meshing them"
+    return type(unit).__name__
+
+
+class _Slots:
+    """Units in flight on a cluster, at most one per worker thread, shared by the runners of
+    one client (jobs that run side by side).
+
+    Dask sends a worker more tasks than it has threads; when a worker dies, every task it
+    held counts as a suspect, so a unit that kills workers would take the units of other
+    jobs queued beside it down with it. Submitting a unit only when a thread is free keeps
+    a worker's death on the unit that ran.
+    """
+
+    def __init__(self, client: Client) -> None:
+        self.client = client
+        self._lock = threading.Lock()
+        self._in_flight = 0
+        self._threads = 0
+        self._asked = -math.inf
+
+    def _capacity(self) -> int:
+        now = time.monotonic()
+        if now - self._asked > _POLL_S:  # ask the scheduler at most every _POLL_S
+            try:
+                workers = self.client.scheduler_info(n_workers=-1)["workers"].values()
+                self._threads = sum(int(w.get("nthreads", 1)) for w in workers)
+            except Exception:  # the scheduler went away: nothing can run
+                self._threads = 0
+            self._asked = now
+        return self._threads
+
+    def acquire(self) -> bool:
+        """Take a slot when a worker thread is free; False when none is."""
+        with self._lock:
+            if self._in_flight >= self._capacity():
+                return False
+            self._in_flight += 1
+            return True
+
+    def release(self) -> None:
+        with self._lock:
+            self._in_flight -= 1
+
+
+class DaskRunner:
+    """Runs units on a Dask cluster (see the module's note).
+
+    ``interrupted()`` is asked while units run; when it says yes, the runner cancels what
+    has not finished and raises :class:`RunInterruptedError` (what the units staged is dropped by
+    the next run: nothing was committed).
+    """
+
+    def __init__(
+        self,
+        client: Client,
+        memory_limit: str,
+        interrupted: Callable[[], bool] | None = None,
+        slots: _Slots | None = None,
+    ) -> None:
+        self.client = client
+        self.memory_limit = memory_limit
+        self.interrupted = interrupted or (lambda: False)
+        self.slots = slots or _Slots(client)
+
+    @property
+    def workers(self) -> int:
+        """Workers now (at least 1): how many parts a scene splits its tiles into."""
+        return max(1, len(self.client.scheduler_info(n_workers=-1)["workers"]))
+
+    def map(self, fn: Callable[[Item], Result], units: Sequence[Item]) -> list[Result]:
+        """Run ``fn`` on every unit; each unit is submitted once a worker thread is free for it
+        (:class:`_Slots`), so a worker holds the one unit it runs, and a worker's death is
+        blamed on that unit alone."""
+        results: dict[int, Result] = {}
+        running: dict[Future, int] = {}
+        waiting = list(range(len(units)))[::-1]
+        try:
+            while waiting or running:
+                if self.interrupted():
+                    raise RunInterruptedError("interrupted")
+                while waiting and self.slots.acquire():
+                    i = waiting.pop()
+                    running[self.client.submit(fn, units[i], pure=False)] = i
+                done = self._first_done(list(running))
+                for future in done:
+                    i = running.pop(future)
+                    self.slots.release()
+                    if future.status == "error":
+                        self._raise(units[i], future)
+                    results[i] = future.result()
+            return [results[i] for i in range(len(units))]
+        finally:
+            if running:
+                self.client.cancel(list(running))
+                for _ in running:
+                    self.slots.release()
+
+    @staticmethod
+    def _first_done(futures: list[Future]) -> set[Future]:
+        """The futures done after waiting at most ``_POLL_S`` for the first one."""
+        if not futures:
+            time.sleep(_POLL_S)  # no worker thread is free: wait for one
+            return set()
+        try:
+            done, _ = wait(futures, timeout=_POLL_S, return_when="FIRST_COMPLETED")
+        except TimeoutError:
+            return set()
+        return set(done)
+
+    def _raise(self, unit: Any, future: Future) -> None:
+        exc = future.exception()
+        if isinstance(exc, KilledWorker):
+            raise UnitFailedError(
+                f"{describe(unit)}: the worker running it died {exc.allowed_failures + 1} "
+                f"times (a worker is stopped when it uses more than its memory limit, "
+                f"{self.memory_limit}); giving up"
+            ) from None
+        raise exc
+
+
+class Cluster:
+    """A Dask client: on ``workers`` local worker processes of ``memory_limit`` each, or on
+    the scheduler at ``scheduler``. Close it when done (a local cluster's workers stop)."""
+
+    def __init__(
+        self,
+        workers: int = 2,
+        memory_limit: str = "auto",
+        scheduler: str | None = None,
+    ) -> None:
+        self._local: LocalCluster | None = None
+        if scheduler:
+            self.client = Client(scheduler, timeout="30s")
+            self.memory_limit = "set by the cluster's workers"
+        else:
+            if workers < 1:
+                raise ValueError(f"workers: must be at least 1, got {workers}")
+            cores = os.cpu_count() or 1
+            self._local = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=1,  # a worker runs one unit at a time, on numba threads
+                processes=True,
+                memory_limit=memory_limit,
+                dashboard_address="127.0.0.1:0",  # its status pages on a free port
+                silence_logs=logging.ERROR,
+                env={"NUMBA_NUM_THREADS": str(max(1, cores // workers))},
+            )
+            self.client = Client(self._local)
+            self.memory_limit = _limit_text(memory_limit, workers)
+        self._slots = _Slots(self.client)
+
+    def runner(self, interrupted: Callable[[], bool] | None = None) -> DaskRunner:
+        return DaskRunner(self.client, self.memory_limit, interrupted, self._slots)
+
+    def n_workers(self) -> int:
+        """Workers that can run units now."""
+        try:
+            return len(self.client.scheduler_info(n_workers=-1)["workers"])
+        except Exception:  # the scheduler went away
+            return 0
+
+    def close(self) -> None:
+        self.client.close()
+        if self._local is not None:
+            self._local.close()
+
+    def __enter__(self) -> Cluster:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _limit_text(memory_limit: str, workers: int) -> str:
+    if memory_limit == "auto":
+        try:
+            total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (ValueError, OSError):
+            return "the machine's memory divided among the workers"
+        return f"{total / workers / 2**30:.1f} GiB"
+    return str(memory_limit)

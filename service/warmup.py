@@ -1,0 +1,122 @@
+"""``rangefuse warmup``: compile every kernel into numba's cache ahead of time.
+
+Fuses and meshes tiny renderings of a small analytic scene with every sensor model, both
+certainty shapes, the filters and the discontinuity test, in mapping and closed mode, so
+that the first real job does not spend a minute compiling (the Docker image runs it at
+build time). The kernels land in ``NUMBA_CACHE_DIR`` (see :mod:`rangefuse.service`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Scan, Volume, sensor_from_dict
+from rangefuse.engine.synth import SceneBuilder, render
+
+from . import numba_cache_dir
+
+__all__ = ["add_warmup_command", "warm_kernels"]
+
+_BOUNDS = (-0.4, -0.4, -0.4, 0.4, 0.4, 0.4)
+#: One small sensor per model and range convention, and where it looks from.
+_SENSORS = {
+    "pinhole z": (
+        {"model": "pinhole", "width": 32, "height": 24, "fx": 30.0, "fy": 30.0, "cx": 15.5,
+         "cy": 11.5, "range_convention": "z", "max_range": 4.0},
+        "cv",
+    ),
+    "pinhole ray": (
+        {"model": "pinhole", "width": 32, "height": 24, "fx": 30.0, "fy": 30.0, "cx": 15.5,
+         "cy": 11.5, "range_convention": "ray", "max_range": 4.0},
+        "cv",
+    ),
+    "spherical": (
+        {"model": "spherical", "width": 90, "height": 12, "az_min": -math.pi, "az_max": math.pi,
+         "wrap": True, "elevations": list(np.linspace(0.5, -0.5, 12)), "max_range": 3.0},
+        "xfwd",
+    ),
+    "spherical, even rows": (
+        {"model": "spherical", "width": 60, "height": 10, "az_min": -1.2, "az_max": 1.2,
+         "el_min": -0.5, "el_max": 0.5, "max_range": 3.0},
+        "xfwd",
+    ),
+    "cylindrical": (
+        {"model": "cylindrical", "width": 80, "height": 16, "az_min": -math.pi,
+         "az_max": math.pi, "wrap": True, "fy": 20.0, "cy": 7.5, "range_convention": "ray",
+         "max_range": 3.0},
+        "xfwd",
+    ),
+    "line scan": (
+        {"model": "cylindrical", "width": 20, "height": 24, "az_min": -0.35, "az_max": 0.35,
+         "fy": 30.0, "cy": 11.5, "axial": "linear", "range_convention": "radial",
+         "max_range": 3.0},
+        "xfwd",
+    ),
+    "orthographic": (
+        {"model": "orthographic", "width": 24, "height": 24, "sx": 0.035, "sy": 0.035,
+         "cx": 11.5, "cy": 11.5, "max_range": 4.0},
+        "cv",
+    ),
+}  # fmt: skip
+
+
+def _pose(eye: np.ndarray, frame: str) -> np.ndarray:
+    """Looking at the origin from ``eye``: OpenCV axes (``cv``) or x forward (``xfwd``)."""
+    forward = -eye / np.linalg.norm(eye)
+    side = np.cross(forward, (0.0, 0.0, 1.0))
+    side /= np.linalg.norm(side)
+    T = np.eye(4)
+    if frame == "cv":  # x right, y down, z forward
+        T[:3, :3] = np.stack([side, np.cross(forward, side), forward], axis=1)
+    else:  # x forward, y left, z up
+        left = -side
+        T[:3, :3] = np.stack([forward, left, np.cross(forward, left)], axis=1)
+    T[:3, 3] = eye
+    return T
+
+
+def warm_kernels() -> int:
+    """Compile (or load) every kernel; returns how many fusions it ran."""
+    scene = (
+        SceneBuilder()
+        .add_box((0.05, -0.05, -0.1), (0.3, 0.25, 0.2), 0.4)
+        .add_sphere((-0.15, 0.15, 0.12), 0.12)
+        .build()
+    )
+    eyes = [np.array(e, np.float64) for e in ((1.2, 0.3, 0.4), (-0.9, 0.8, -0.3))]
+    runs = 0
+    for sensor_dict, frame in _SENSORS.values():
+        sensor = sensor_from_dict(sensor_dict)
+        scans = []
+        for n, eye in enumerate(eyes):
+            T = _pose(eye, frame)
+            scans.append((f"s{n}", Scan(render(scene, sensor, T), T, sensor)))
+        for shape, filt, disc in (("linear", "none", None), ("erf", "median3", 0.05),
+                                  ("linear", "mean5", None)):  # fmt: skip
+            params = FusionParams(NoiseModel(eps=0.04, rho=0.05, shape=shape), filter=filt,
+                                  max_discontinuity=disc)  # fmt: skip
+            for mode in ("mapping", "closed"):
+                volume = Volume(GridSpec(0.02, 8, mode, _BOUNDS), params)
+                volume.add_many(scans)
+                volume.extract_mesh(refine=True)
+                volume.remove("s0")
+                runs += 1
+    return runs
+
+
+def _cmd_warmup(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+    runs = warm_kernels()
+    print(f"compiled the kernels ({runs} fusions) into {numba_cache_dir()} in "
+          f"{time.perf_counter() - t0:.1f} s")  # fmt: skip
+    return 0
+
+
+def add_warmup_command(sub: argparse._SubParsersAction) -> None:
+    warmup = sub.add_parser(
+        "warmup", help="compile every kernel into numba's cache (first jobs start at once)"
+    )
+    warmup.set_defaults(func=_cmd_warmup)
