@@ -1,13 +1,19 @@
-"""``rangefuse serve`` and ``rangefuse token create``: the REST service from the command line."""
+"""``rangefuse serve`` and ``rangefuse token create|list|revoke``: the REST service from the
+command line."""
 
 from __future__ import annotations
 
 import argparse
+import copy
+import logging
+import time
 from pathlib import Path
+from typing import Any
 
 from rangefuse.storage import Store
 
 from ._cliutil import CommandError, positive_int
+from .accounts import Accounts, TokenIdError
 
 __all__ = ["add_serve_commands"]
 
@@ -27,10 +33,35 @@ def _settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         raise CommandError(str(exc)) from None
 
 
+class AccessLogWithoutQuery(logging.Filter):
+    """Drops the query string from uvicorn's access log lines (``GET /v1/scenes?x=1`` is
+    logged as ``GET /v1/scenes``): a query may carry a secret (a token in an old bookmark of
+    the page), and a log is read by more people than the service's callers."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        # uvicorn logs (client_addr, method, path_with_query, http_version, status_code)
+        if isinstance(record.args, tuple) and len(record.args) == 5:
+            fields = list(record.args)
+            if isinstance(fields[2], str):
+                fields[2] = fields[2].split("?", 1)[0]
+                record.args = tuple(fields)
+        return True
+
+
+def _log_config() -> dict[str, Any]:
+    """uvicorn's logging configuration with :class:`AccessLogWithoutQuery` on its access
+    logger."""
+    from uvicorn.config import LOGGING_CONFIG
+
+    config = copy.deepcopy(LOGGING_CONFIG)
+    config.setdefault("filters", {})["without_query"] = {"()": AccessLogWithoutQuery}
+    config["loggers"]["uvicorn.access"]["filters"] = ["without_query"]
+    return config
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from .accounts import Accounts
     from .app import create_app
 
     settings = _settings(args)
@@ -38,21 +69,48 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     with Store.open(settings.data_dir) as store, Accounts(store.catalog.path) as accounts:
         if accounts.n_tokens() == 0:
             token = accounts.create_token("default")
+            admin = accounts.create_token("admin", role="admin")
             print(f"first start: created a token for tenant 'default': {token}", flush=True)
-            print("  use it as: Authorization: Bearer TOKEN", flush=True)
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
+            print(f"first start: admin token (for /metrics; no scenes): {admin}", flush=True)
+            print("  use them as: Authorization: Bearer TOKEN", flush=True)
+    uvicorn.run(
+        app, host=settings.host, port=settings.port, log_level="info", log_config=_log_config()
+    )
     return 0
 
 
-def _cmd_token(args: argparse.Namespace) -> int:
-    from .accounts import Accounts
+def _accounts(args: argparse.Namespace) -> Accounts:
+    with Store.open(_settings(args).data_dir, create=True) as store:
+        return Accounts(store.catalog.path)
 
-    settings = _settings(args)
-    with (
-        Store.open(settings.data_dir, create=True) as store,
-        Accounts(store.catalog.path) as accounts,
-    ):
-        print(accounts.create_token(args.tenant))
+
+def _cmd_token_create(args: argparse.Namespace) -> int:
+    tenant = args.tenant.strip()
+    if not tenant or len(tenant) > 200 or not tenant.isprintable():
+        raise CommandError(f"--tenant: must be 1 to 200 printable characters, got {args.tenant!r}")
+    with _accounts(args) as accounts:
+        print(accounts.create_token(tenant, role="admin" if args.admin else "tenant"))
+    return 0
+
+
+def _cmd_token_list(args: argparse.Namespace) -> int:
+    with _accounts(args) as accounts:
+        rows = accounts.tokens()
+    width = max([len("tenant"), *(len(r.tenant) for r in rows)])
+    print(f"{'id':<12}  {'tenant':<{width}}  {'role':<6}  created (UTC)")
+    for r in rows:
+        created = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(r.created_at))
+        print(f"{r.id:<12}  {r.tenant:<{width}}  {r.role:<6}  {created}")
+    return 0
+
+
+def _cmd_token_revoke(args: argparse.Namespace) -> int:
+    with _accounts(args) as accounts:
+        try:
+            row = accounts.revoke_token(args.id)
+        except TokenIdError as exc:
+            raise CommandError(str(exc)) from None
+    print(f"revoked token {row.id} ({row.role} token of {row.tenant!r})")
     return 0
 
 
@@ -80,6 +138,19 @@ def add_serve_commands(sub: argparse._SubParsersAction) -> None:
     token = sub.add_parser("token", help="manage API tokens")
     token_sub = token.add_subparsers(dest="token_command", required=True, metavar="ACTION")
     create = token_sub.add_parser("create", help="create a token for a tenant and print it")
-    create.add_argument("--tenant", required=True, help="tenant name")
+    create.add_argument("--tenant", required=True, help="tenant name (for --admin: who uses it)")
+    create.add_argument(
+        "--admin", action="store_true",
+        help="an operator's token: reads /metrics, has no scenes (docs/auth.md)",
+    )  # fmt: skip
     create.add_argument("--data-dir", type=Path, default=None, help="store (RANGEFUSE_DATA_DIR)")
-    create.set_defaults(func=_cmd_token)
+    create.set_defaults(func=_cmd_token_create)
+    listing = token_sub.add_parser(
+        "list", help="list the tokens: id, tenant, role, created (never the tokens themselves)"
+    )
+    listing.add_argument("--data-dir", type=Path, default=None, help="store (RANGEFUSE_DATA_DIR)")
+    listing.set_defaults(func=_cmd_token_list)
+    revoke = token_sub.add_parser("revoke", help="revoke a token: refused from the next request")
+    revoke.add_argument("id", help="its id as `rangefuse token list` shows it (or a prefix)")
+    revoke.add_argument("--data-dir", type=Path, default=None, help="store (RANGEFUSE_DATA_DIR)")
+    revoke.set_defaults(func=_cmd_token_revoke)

@@ -18,11 +18,13 @@ from pathlib import Path
 from fastapi import FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
 from rangefuse.engine import InvalidInputError
 from rangefuse.storage import Store, StoreError
 
-from .accounts import Accounts
+from .accounts import Accounts, IdempotencyKeyReusedError
 from .api.deps import Services, ThreadStores
 from .api.limits import BodyLimit
 from .api.routes import ROUTERS
@@ -57,6 +59,43 @@ async def _store(request: Request, exc: StoreError) -> JSONResponse:
     return JSONResponse({"detail": str(exc)}, status_code=409)
 
 
+async def _key_reused(request: Request, exc: IdempotencyKeyReusedError) -> JSONResponse:
+    return JSONResponse({"detail": str(exc)}, status_code=422)
+
+
+# --- API docs from local copies of Swagger UI and ReDoc (no CDN: they work offline) -----------
+
+_VENDOR = Path(__file__).parent / "static" / "vendor"  # docs/auth.md: versions, licences
+_VENDOR_URL = "/static/vendor"
+
+
+def _add_api_docs(app: FastAPI, openapi_url: str) -> None:
+    """``/docs`` (Swagger UI) and ``/redoc`` (ReDoc), their scripts served from
+    ``static/vendor`` instead of FastAPI's default CDN (a blank page without internet)."""
+    app.mount(_VENDOR_URL, StaticFiles(directory=_VENDOR), name="vendor")
+    title = f"{app.title} API"
+
+    @app.get("/docs", include_in_schema=False)
+    def swagger_ui() -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url=openapi_url,
+            title=title,
+            swagger_js_url=f"{_VENDOR_URL}/swagger-ui/swagger-ui-bundle.js",
+            swagger_css_url=f"{_VENDOR_URL}/swagger-ui/swagger-ui.css",
+            swagger_favicon_url=f"{_VENDOR_URL}/swagger-ui/favicon-32x32.png",
+        )
+
+    @app.get("/redoc", include_in_schema=False)
+    def redoc() -> HTMLResponse:
+        return get_redoc_html(
+            openapi_url=openapi_url,
+            title=title,
+            redoc_js_url=f"{_VENDOR_URL}/redoc/redoc.standalone.js",
+            redoc_favicon_url=f"{_VENDOR_URL}/swagger-ui/favicon-32x32.png",
+            with_google_fonts=False,
+        )
+
+
 # --- the application --------------------------------------------------------------------------
 
 
@@ -68,7 +107,7 @@ def create_app(settings: Settings) -> FastAPI:
     services = Services(
         settings=settings,
         store=ThreadStores(data_dir),
-        accounts=Accounts(db_path),
+        accounts=Accounts(db_path, settings.idempotency_ttl_s),
         queue=JobQueue(db_path),
         jobs=JobRunner(data_dir, settings),
     )
@@ -87,13 +126,17 @@ def create_app(settings: Settings) -> FastAPI:
         version="0.1.0",
         description="Certainty fusion of registered range scans into 3D models.",
         lifespan=lifespan,
+        docs_url=None,  # _add_api_docs: from local copies
+        redoc_url=None,
     )
     app.state.services = services
     app.add_exception_handler(RequestValidationError, _validation)  # type: ignore[arg-type]
     app.add_exception_handler(InvalidInputError, _invalid)  # type: ignore[arg-type]
     app.add_exception_handler(UploadError, _upload)  # type: ignore[arg-type]
     app.add_exception_handler(StoreError, _store)  # type: ignore[arg-type]
+    app.add_exception_handler(IdempotencyKeyReusedError, _key_reused)  # type: ignore[arg-type]
     for router in ROUTERS:
         app.include_router(router)
+    _add_api_docs(app, app.openapi_url or "/openapi.json")
     app.add_middleware(BodyLimit, limit=int(settings.max_upload_mb * 2**20))
     return app

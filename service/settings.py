@@ -37,6 +37,10 @@ class Settings(BaseSettings):
     jobs: int = Field(default=2, ge=1, le=64, description="jobs carried out at once")
     cache_mb: float = Field(default=512.0, gt=0, description="tile cache of each job")
     poll_s: float = Field(default=0.1, gt=0, description="how often the job runner looks")
+    idempotency_ttl_s: float = Field(
+        default=24 * 3600.0, gt=0,
+        description="seconds an upload's Idempotency-Key is kept after its first use",
+    )  # fmt: skip
 
     @field_validator("worker_memory")
     @classmethod

@@ -87,11 +87,14 @@ class Server:
         for line in stream:
             self.lines.append(line)
 
-    def read_token(self) -> str:
+    def read_token(self, role: str = "tenant") -> str:
+        """The token the first start printed: tenant 'default''s, or with ``role="admin"``
+        the admin token."""
+        marker = "created a token" if role == "tenant" else "admin token"
         deadline = time.time() + 30
         while time.time() < deadline:
             for line in list(self.lines):
-                if "created a token" in line:
+                if marker in line:
                     return line.rsplit(" ", 1)[1].strip()
             time.sleep(0.05)
         raise AssertionError("no token printed:\n" + "".join(self.lines))
@@ -169,7 +172,7 @@ def _n_scans(client, scene_id) -> int:
 # --------------------------------------------------------------------------------------------
 
 
-def test_end_to_end_matches_the_command_line(client, object_data, tmp_path):
+def test_end_to_end_matches_the_command_line(server, client, object_data, tmp_path):
     r = client.post("/v1/scenes", json=_scene_body(object_data))
     assert r.status_code == 201, r.text
     scene = r.json()
@@ -217,7 +220,8 @@ def test_end_to_end_matches_the_command_line(client, object_data, tmp_path):
         assert len(loaded.faces) == len(local.faces)
     png = client.get(f"/v1/scenes/{sid}/slice", params={"axis": "z", "at": 0.1})
     assert png.status_code == 200 and png.content.startswith(b"\x89PNG")
-    metrics = client.get("/metrics").text
+    admin = {"Authorization": f"Bearer {server.read_token('admin')}"}
+    metrics = client.get("/metrics", headers=admin).text
     assert 'rangefuse_scans{state="fused"}' in metrics and "rangefuse_tiles" in metrics
     # exact removal through the API
     victim = client.get(f"/v1/scenes/{sid}/scans").json()[0]["id"]

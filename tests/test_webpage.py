@@ -44,7 +44,7 @@ def test_page_lists_scenes_and_jobs_and_shows_the_mesh(tmp_path):
             faces = c.get(f"/v1/jobs/{job}").json()["result"]["faces"]
             listed = c.get("/v1/jobs").json()
             assert listed[0]["id"] == job and all(j["state"] == "done" for j in listed)
-        dom = _dom(f"{srv.url}/?token={token}&scene={sid}")
+        dom = _dom(f"{srv.url}/?scene={sid}#token={token}")  # the fragment never leaves the browser
         assert "teapot-desk" in dom
         assert f'data-job="{job}" data-state="done"' in dom
         assert f'data-triangles="{faces}"' in dom

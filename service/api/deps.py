@@ -24,13 +24,14 @@ from fastapi import Depends, Header, HTTPException, Request
 from rangefuse.storage import Store
 from rangefuse.storage.catalog import SceneRow
 
-from ..accounts import Accounts
+from ..accounts import Accounts, Caller
 from ..jobs import JobRunner
 from ..queue import JobQueue
 from ..settings import Settings
 
 __all__ = [
     "AccountsDep",
+    "CurrentAdmin",
     "CurrentTenant",
     "JobsDep",
     "QueueDep",
@@ -109,19 +110,48 @@ JobsDep = Annotated[JobRunner, Depends(get_jobs)]
 UploadLockDep = Annotated[threading.Lock, Depends(get_upload_lock)]
 
 
-def current_tenant(
-    accounts: AccountsDep, authorization: Annotated[str | None, Header()] = None
-) -> str:
-    """The tenant of the request's bearer token (401 without a valid one)."""
+def _caller(accounts: Accounts, authorization: str | None) -> Caller:
+    """Who the request's bearer token speaks for (401 without a valid one)."""
     if not authorization or not authorization.startswith("Bearer "):
         raise HTTPException(401, "missing bearer token (Authorization: Bearer TOKEN)")
-    found = accounts.tenant(authorization[7:].strip())
+    found = accounts.caller(authorization[7:].strip())
     if found is None:
-        raise HTTPException(401, "invalid token")
+        raise HTTPException(401, "invalid token (unknown or revoked)")
     return found
 
 
+def current_tenant(
+    accounts: AccountsDep, authorization: Annotated[str | None, Header()] = None
+) -> str:
+    """The tenant of the request's bearer token (401 without a valid one, 403 for an admin
+    token: operators' tokens have no scenes)."""
+    caller = _caller(accounts, authorization)
+    if caller.role != "tenant":
+        raise HTTPException(
+            403,
+            "admin token: admin tokens read /metrics and have no scenes or jobs; use a tenant "
+            "token (rangefuse token create --tenant NAME)",
+        )
+    return caller.tenant
+
+
+def current_admin(
+    accounts: AccountsDep, authorization: Annotated[str | None, Header()] = None
+) -> str:
+    """The name on the request's admin token (401 without a valid token, 403 for a tenant's
+    token)."""
+    caller = _caller(accounts, authorization)
+    if caller.role != "admin":
+        raise HTTPException(
+            403,
+            f"needs an admin token (rangefuse token create --tenant NAME --admin); this is a "
+            f"token of tenant {caller.tenant!r}",
+        )
+    return caller.tenant
+
+
 CurrentTenant = Annotated[str, Depends(current_tenant)]
+CurrentAdmin = Annotated[str, Depends(current_admin)]
 
 
 def tenant_scene(scene_id: str, who: CurrentTenant, store: StoreDep) -> SceneRow:

@@ -7,8 +7,8 @@ from pathlib import Path
 from fastapi import APIRouter, Response
 from fastapi.responses import JSONResponse
 
-from ..deps import CurrentTenant, JobsDep, QueueDep, StoreDep
-from ..models import Health, problems
+from ..deps import CurrentAdmin, JobsDep, QueueDep, StoreDep
+from ..models import Health, Problem, problems
 
 __all__ = ["router"]
 
@@ -20,7 +20,8 @@ _PAGE = (Path(__file__).parents[2] / "static" / "index.html").read_bytes()
 @router.get("/", include_in_schema=False)
 def index() -> Response:
     """Scenes and jobs with progress, and the latest mesh of a scene (the page asks for
-    a token, or takes ``?token=``; every call it makes carries it)."""
+    a token, or takes it from the URL fragment ``#token=``, which browsers never send; it
+    keeps it in sessionStorage, and every call it makes carries it)."""
     return Response(_PAGE, media_type="text/html; charset=utf-8")
 
 
@@ -41,10 +42,12 @@ def healthz(jobs: JobsDep) -> Health | JSONResponse:
     responses={
         200: {"content": {"text/plain": {}}, "description": "Prometheus text format"},
         **problems(401, 422),
+        403: {"model": Problem, "description": "a tenant's token (metrics need an admin token)"},
     },
 )
-def metrics(who: CurrentTenant, store: StoreDep, queue: QueueDep) -> Response:
-    """Scans, tiles and jobs by state, and the voxel updates per second of integration."""
+def metrics(who: CurrentAdmin, store: StoreDep, queue: QueueDep) -> Response:
+    """Scans, tiles and jobs by state, and the voxel updates per second of integration, over
+    every tenant: for operators (an admin token; a tenant's token gets 403)."""
     counts = store().catalog.counts()
     jobs = queue.counts()
     lines = ["# TYPE rangefuse_scans gauge"]

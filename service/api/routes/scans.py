@@ -10,7 +10,7 @@ from fastapi.concurrency import run_in_threadpool
 from rangefuse.engine.params import params_of
 from starlette.requests import ClientDisconnect
 
-from ...accounts import Accounts
+from ...accounts import Accounts, upload_digest
 from ...jobs import new_id
 from ...queue import JobQueue
 from ...uploads import UploadedScan, decode_scan
@@ -96,12 +96,14 @@ def _store_upload(
     scene_id: str,
     who: str,
     key: str | None,
+    body_sha256: str | None,
     uploaded: UploadedScan,
 ) -> dict[str, Any]:
-    """Archive the scan and queue it; a key seen before answers what it answered then."""
+    """Archive the scan and queue it; a key seen before answers what it answered then (422
+    when it came with another scan or scene: IdempotencyKeyReusedError)."""
     with lock:  # idempotency: one retry at a time
-        if key is not None:
-            seen = accounts.idempotent_response(who, key)
+        if key is not None and body_sha256 is not None:
+            seen = accounts.recorded_response(who, key, scene_id, body_sha256)
             if seen is not None:
                 return seen
         row = store().store_scan(scene_id, new_id(), uploaded.scan, uploaded.name)
@@ -111,7 +113,7 @@ def _store_upload(
         response = {"scan": {"id": row.id, "name": row.name, "state": row.state},
                     "job": {"id": job.id}}  # fmt: skip
         if key is not None:
-            accounts.remember_response(who, key, response)
+            accounts.remember_response(who, key, response, scene_id, body_sha256)
         return response
 
 
@@ -136,14 +138,19 @@ async def upload_scan(
 ) -> dict[str, Any]:
     """Upload a scan; 202 once it is archived on disk, with the job that fuses it (new
     uploads join the scene's queued ``integrate`` job). With an ``Idempotency-Key``, a retry
-    gets the first answer and never stores a second scan."""
+    gets the first answer and never stores a second scan; the key is bound to the scene and
+    the parts' SHA-256, and reusing it for another scan or scene answers 422."""
     if idempotency_key is not None and not 0 < len(idempotency_key) <= 200:
         raise HTTPException(400, "Idempotency-Key: must be 1 to 200 characters")
     parts = await _read_parts(request, settings.max_upload_mb)
     uploaded = await run_in_threadpool(decode_scan, parts["range"], parts["meta"])
+    digest = None
+    if idempotency_key is not None:
+        digest = await run_in_threadpool(upload_digest, parts["range"], parts["meta"])
     response = await run_in_threadpool(
-        _store_upload, store, accounts, queue, lock, scene.id, who, idempotency_key, uploaded
-    )
+        _store_upload, store, accounts, queue, lock, scene.id, who, idempotency_key, digest,
+        uploaded,
+    )  # fmt: skip
     jobs.wake()
     return response
 
