@@ -65,6 +65,7 @@ class GridSpec:
                         f"{name}0 must be less than {name}1, got {values[axis]} and "
                         f"{values[axis + 3]}",
                     )
+            self._check_key_range(values)
             lo, hi = self.roi_voxels()
             if np.any(hi <= lo):
                 raise InvalidGridError(
@@ -72,6 +73,22 @@ class GridSpec:
                 )
         elif self.mode == "closed":
             raise InvalidGridError("bounds", "closed mode needs a region of interest")
+
+    def _check_key_range(self, bounds: Bounds) -> None:
+        """Refuse bounds with a voxel centre in a tile beyond the packed keys' range
+        (``+-(KEY_LIMIT - 1)`` tiles; see :func:`pack_keys`): checked on the float values,
+        before any of them becomes an integer."""
+        limit_m = (KEY_LIMIT - 1) * self.tile_size_m
+        for n, value in enumerate(bounds):
+            if -limit_m < value < limit_m:
+                continue
+            name = "xyz"[n % 3] + "01"[n // 3]
+            raise InvalidGridError(
+                "bounds",
+                f"{name} = {value:g} m lies beyond the range of tile keys: at voxel size "
+                f"{self.voxel_size:g} m and tile size {self.tile_size} a scene spans "
+                f"+-{limit_m:.6g} m on each axis ({KEY_LIMIT - 1:,} tiles from the origin)",
+            )
 
     @property
     def tile_size_m(self) -> float:

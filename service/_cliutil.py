@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import tempfile
 import time
 from collections.abc import Callable, Sequence
@@ -12,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from rangefuse.engine import DenseGrid, InvalidInputError
+from rangefuse.engine.budget import LIMITS, Limits
 from rangefuse.engine.meshing import Mesh
 from rangefuse.engine.params import Param
 from rangefuse.storage import write_grid
@@ -171,3 +173,67 @@ def add_output_options(parser: argparse.ArgumentParser) -> None:
         help="place vertices by linear interpolation of the log-odds instead of re-evaluating "
         "the scans along each edge (faster, less accurate)",
     )
+
+
+def size_bytes(text: str) -> int:
+    """A size such as ``64GiB``, ``500MB`` or a number of bytes."""
+    from dask.utils import parse_bytes
+
+    try:
+        value = int(parse_bytes(text))
+    except (ValueError, TypeError):
+        raise argparse.ArgumentTypeError(
+            f"not a size such as 64GiB or a number of bytes: {text!r}"
+        ) from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1 byte, got {text!r}")
+    return value
+
+
+def add_budget_options(parser: argparse.ArgumentParser, in_memory: bool = False) -> None:
+    """``--max-scan-tiles N``, ``--max-scene-tiles N``, ``--max-scene-bytes SIZE``: the limits
+    declared in ``engine/budget.py``, checked before any fusion (docs/budgets.md).
+    ``in_memory``: the command can fuse in memory, where the bytes default to a share of
+    the machine's memory (:func:`budget_limits`)."""
+    for limit in LIMITS.values():
+        if limit.unit == "bytes":
+            default = f"{limit.default / 2**30:g} GiB"
+            if in_memory:
+                share = f"{_MEMORY_SHARE:.0%}".replace("%", "%%")  # argparse formats help
+                default += f" with --store; in memory at most {share} of this machine's memory"
+            kwargs: dict[str, Any] = {"type": size_bytes, "metavar": "SIZE"}
+        else:
+            default = f"{limit.default:,}"
+            kwargs = {"type": positive_int, "metavar": "N"}
+        parser.add_argument(
+            "--" + limit.name.replace("_", "-"),
+            default=None,
+            help=f"{limit.help} (default {default})",
+            **kwargs,
+        )
+
+
+#: The in-memory volume's bytes by default: this share of the machine's memory at most.
+_MEMORY_SHARE = 0.75
+
+
+def budget_limits(args: argparse.Namespace, in_memory: bool = False) -> Limits:
+    """The limits of ``--max-*`` (their defaults when not given), named by their options in
+    messages. In memory (``fuse`` without ``--store``) the scene's voxels are held in this
+    process: their bytes are limited to ``_MEMORY_SHARE`` of the machine's memory too."""
+    values = {}
+    knobs = {name: "--" + name.replace("_", "-") for name in LIMITS}
+    for limit in LIMITS.values():
+        given = getattr(args, limit.name, None)
+        values[limit.name] = limit.default if given is None else given
+    if in_memory and getattr(args, "max_scene_bytes", None) is None:
+        try:
+            memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (ValueError, OSError):
+            memory = 0
+        if 0 < memory * _MEMORY_SHARE < values["max_scene_bytes"]:
+            values["max_scene_bytes"] = int(memory * _MEMORY_SHARE)
+            knobs["max_scene_bytes"] += (
+                f"; by default {_MEMORY_SHARE:.0%} of this machine's memory when fusing in memory"
+            )
+    return Limits(**values, knobs=knobs)

@@ -15,6 +15,7 @@ from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 from rangefuse.engine import FusionParams, GridSpec, Scan
+from rangefuse.engine.budget import Limits, check_scans
 from rangefuse.engine.meshing import Mesh
 from rangefuse.storage import open_dataset
 from rangefuse.storage.dataset import read_scan_file
@@ -24,7 +25,9 @@ from rangefuse.storage.units import InProcess, Runner
 
 from ._cliutil import (
     CommandError,
+    add_budget_options,
     add_output_options,
+    budget_limits,
     check_outputs,
     finite_float,
     positive_float,
@@ -90,14 +93,19 @@ def fuse_into_store(
     dataset_path: Path,
     grid: GridSpec,
     params: FusionParams,
+    limits: Limits,
 ) -> int:
     """``rangefuse fuse DATASET --store DIR``."""
     dataset = open_dataset(dataset_path)
+    if not Path(args.store).exists():  # the budgets before the store is created
+        check_scans(dataset.scans(), params, grid, limits)
     with (
         _runner(args) as runner,
         open_store(args.store, grid, params, cache_mb=args.cache_mb, runner=runner) as scene,
     ):
         _announce_recovery(scene)
+        new = ((s, scan) for s, scan in dataset.scans() if s not in scene)
+        check_scans(new, params, grid, limits, scene.catalog.n_tiles(scene.scene_id))
         _store_and_integrate(scene, dataset.scans(), args.quiet, "fuse")
         _write_scene_outputs(args, scene)
     return 0
@@ -158,6 +166,10 @@ def _cmd_add(args: argparse.Namespace) -> int:
         duplicate = [s for s, _ in scans if s in scene]
         if duplicate:
             raise CommandError(f"the store already holds a scan named {duplicate[0]!r}")
+        check_scans(  # the budgets before any scan is stored (docs/budgets.md)
+            scans, scene.params, scene.grid, budget_limits(args),
+            scene.catalog.n_tiles(scene.scene_id),
+        )  # fmt: skip
         _store_and_integrate(scene, scans, args.quiet, "add")
     return 0
 
@@ -216,6 +228,7 @@ def add_store_commands(sub: argparse._SubParsersAction) -> None:
     )
     cache_option(add)
     workers_option(add)
+    add_budget_options(add)
     add.add_argument("--quiet", action="store_true", help="no progress bar")
     add.set_defaults(func=_cmd_add)
 

@@ -18,13 +18,16 @@ from pathlib import Path
 
 import numpy as np
 from rangefuse.engine import FusionParams, GridSpec, InvalidInputError, NoiseModel, Scan, Volume
+from rangefuse.engine.budget import check_grid, check_scans
 from rangefuse.engine.params import PARAMS, default_eps
 from rangefuse.storage import DatasetError, StoreError, open_dataset, write_dataset
 
 from ._cliutil import (
     CommandError,
+    add_budget_options,
     add_output_options,
     add_param_option,
+    budget_limits,
     check_outputs,
     check_writable,
     positive_float,
@@ -118,6 +121,13 @@ def _bounds_from_data(scans: Iterable[Scan], noise: NoiseModel, voxel_size: floa
     return tuple(float(x) for x in np.concatenate([lo - pad, hi + pad]))
 
 
+def _kept(items: Iterable[tuple[str, Scan]], into: list) -> Iterable[tuple[str, Scan]]:
+    """``items``, each also appended to ``into`` (the scans are read once)."""
+    for item in items:
+        into.append(item)
+        yield item
+
+
 def _cmd_fuse(args: argparse.Namespace) -> int:
     # --format KIND: a source in a foreign format, read into memory (service/_import_cli.py)
     dataset = read_source_for_fuse(args) if args.format else open_dataset(args.dataset)
@@ -141,9 +151,12 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
     grid = GridSpec(args.voxel_size, args.tile_size, args.mode, bounds)
+    limits = budget_limits(args, in_memory=args.store is None)
+    check_grid(grid, limits)  # resource budgets before any fusion (docs/budgets.md)
     if args.store is not None:
-        return fuse_into_store(args, args.dataset, grid, params)
-    scans = list(dataset.scans())
+        return fuse_into_store(args, args.dataset, grid, params, limits)
+    scans: list[tuple[str, Scan]] = []
+    check_scans(_kept(dataset.scans(), scans), params, grid, limits)
     volume = Volume(grid, params)
     bar = ProgressBar("fuse", enabled=not args.quiet)
     try:
@@ -212,6 +225,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     cache_option(fuse)
     workers_option(fuse)
+    add_budget_options(fuse, in_memory=True)
     fuse.add_argument("--quiet", action="store_true", help="no progress bar")
     fuse.set_defaults(func=_cmd_fuse)
     add_store_commands(sub)

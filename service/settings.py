@@ -7,6 +7,7 @@ from pathlib import Path
 from dask.utils import parse_bytes
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+from rangefuse.engine.budget import LIMITS
 
 __all__ = ["Settings"]
 
@@ -41,6 +42,30 @@ class Settings(BaseSettings):
         default=24 * 3600.0, gt=0,
         description="seconds an upload's Idempotency-Key is kept after its first use",
     )  # fmt: skip
+    # resource budgets, declared in engine/budget.py (docs/budgets.md)
+    max_scan_tiles: int = Field(
+        default=LIMITS["max_scan_tiles"].default, ge=1, description=LIMITS["max_scan_tiles"].help
+    )
+    max_scene_tiles: int = Field(
+        default=LIMITS["max_scene_tiles"].default, ge=1, description=LIMITS["max_scene_tiles"].help
+    )
+    max_scene_bytes: int = Field(
+        default=LIMITS["max_scene_bytes"].default, ge=1,
+        description=LIMITS["max_scene_bytes"].help + "; a size such as 64GiB",
+    )  # fmt: skip
+    max_scenes_per_tenant: int = Field(default=100, ge=1, description="scenes a tenant may have")
+
+    @field_validator("max_scene_bytes", mode="before")
+    @classmethod
+    def _size(cls, value: object) -> object:
+        if isinstance(value, str) and not value.strip().isdigit():
+            try:
+                return parse_bytes(value)
+            except (ValueError, TypeError):
+                raise ValueError(
+                    f"must be a size such as 64GiB or a number of bytes; got {value!r}"
+                ) from None
+        return value
 
     @field_validator("worker_memory")
     @classmethod

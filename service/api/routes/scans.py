@@ -11,6 +11,7 @@ from rangefuse.engine.params import params_of
 from starlette.requests import ClientDisconnect
 
 from ...accounts import Accounts, upload_digest
+from ...budgets import check_upload
 from ...jobs import new_id
 from ...queue import JobQueue
 from ...uploads import UploadedScan, decode_scan
@@ -144,6 +145,7 @@ async def upload_scan(
         raise HTTPException(400, "Idempotency-Key: must be 1 to 200 characters")
     parts = await _read_parts(request, settings.max_upload_mb)
     uploaded = await run_in_threadpool(decode_scan, parts["range"], parts["meta"])
+    await run_in_threadpool(check_upload, store, scene, uploaded.scan, settings)  # budgets
     digest = None
     if idempotency_key is not None:
         digest = await run_in_threadpool(upload_digest, parts["range"], parts["meta"])

@@ -6,8 +6,9 @@ from fastapi import APIRouter, Response
 from rangefuse.engine import FusionParams, GridSpec, NoiseModel
 from rangefuse.engine.params import default_eps
 
+from ...budgets import check_new_scene
 from ...jobs import new_id
-from ..deps import CurrentTenant, QueueDep, StoreDep, TenantScene
+from ..deps import CurrentTenant, QueueDep, SettingsDep, StoreDep, TenantScene
 from ..models import NoiseIn, SceneDetail, SceneIn, SceneOut, problems
 
 __all__ = ["router"]
@@ -36,9 +37,13 @@ def _scene_spec(body: SceneIn) -> tuple[GridSpec, FusionParams]:
 
 
 @router.post("", status_code=201, response_model=SceneOut)
-def create_scene(body: SceneIn, who: CurrentTenant, store: StoreDep) -> SceneOut:
-    """A new scene; the answer has every default filled in."""
+def create_scene(
+    body: SceneIn, who: CurrentTenant, store: StoreDep, settings: SettingsDep
+) -> SceneOut:
+    """A new scene; the answer has every default filled in. 422 past the tenant's scenes or
+    for a closed grid over budget (docs/budgets.md)."""
     grid, params = _scene_spec(body)
+    check_new_scene(store(), who, grid, settings)
     scene_id = new_id()
     store().create_scene(scene_id, grid, params, name=body.name, tenant=who)
     row = store().catalog.scene(scene_id)
