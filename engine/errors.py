@@ -8,6 +8,7 @@ the service and the command line can show it to the user unchanged.
 from __future__ import annotations
 
 __all__ = [
+    "FarRangesError",
     "InvalidGridError",
     "InvalidInputError",
     "InvalidNoiseError",
@@ -32,6 +33,11 @@ class InvalidSensorError(InvalidInputError):
 
 class InvalidScanError(InvalidInputError):
     """A range map or pose that cannot be fused."""
+
+
+class FarRangesError(InvalidScanError):
+    """A range map whose measured ranges mostly lie beyond the sensor's ``max_range`` or look
+    like millimetres: refused unless accepted explicitly (``accept_far_ranges``)."""
 
 
 class InvalidNoiseError(InvalidInputError):

@@ -3,7 +3,11 @@
 A :class:`Scan` is one registered range map (FORMAT.md): an H x W float32
 array of ranges (finite: a measurement, ``+inf``: no return, NaN: invalid), a
 sensor model, a pose ``T_W_S`` (sensor-to-world) and optional noise overrides.
-Constructing one validates everything; the message of the error names the field.
+Constructing one validates everything; the message of the error names the field. A finite
+range beyond the sensor's ``max_range`` is not a surface: it becomes NaN (invalid) and is
+counted (``Scan.far_ranges``); a map whose measured ranges mostly lie there, or look like
+millimetres, is refused (:class:`FarRangesError`) unless accepted explicitly
+(:func:`check_far_ranges`, ``docs/input-safety.md``).
 
 :func:`prepare_scan` applies the scene's :class:`FusionParams` once (filter,
 no-return policy) and computes what the kernels need: the prepared range map,
@@ -12,7 +16,7 @@ the pose as ``p_S = M x_W + c``, and the quad-block maps of the tile tests.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -20,16 +24,35 @@ import numpy as np
 from . import _sampling
 from ._memory import Scratch
 from .certainty import NoiseModel
-from .errors import InvalidInputError, InvalidScanError
+from .errors import FarRangesError, InvalidInputError, InvalidScanError
 from .filters import filter_range
 from .params import PARAMS, current_names, params_of
 from .sensors import Sensor
 
-__all__ = ["NO_RETURN", "FusionParams", "PreparedScan", "Scan", "check_pose", "prepare_scan"]
+__all__ = [
+    "NO_RETURN",
+    "FusionParams",
+    "PreparedScan",
+    "Scan",
+    "check_far_ranges",
+    "check_pose",
+    "check_range_layout",
+    "prepare_scan",
+]
 
 NO_RETURN = PARAMS["no_return"].choices
 #: Largest deviation of ``R^T R`` from the identity accepted in a pose.
 _ROTATION_TOLERANCE = 1e-5
+#: A range map is refused when more than this share of its measured ranges lie beyond the
+#: sensor's ``max_range`` ...
+FAR_SHARE_LIMIT = 0.5
+#: ... or when at least this share of them are whole numbers and their median is over
+#: MILLIMETRE_MEDIAN_M: depth in millimetres (or centimetres) read as metres, which a
+#: generous ``max_range`` lets through.
+WHOLE_SHARE_LIMIT = 0.9
+MILLIMETRE_MEDIAN_M = 100.0
+#: The median and the share of whole numbers are taken over at most this many ranges.
+_SAMPLE = 1 << 16
 
 
 def check_pose(T_W_S: Any, field_name: str = "pose") -> np.ndarray:
@@ -45,7 +68,8 @@ def check_pose(T_W_S: Any, field_name: str = "pose") -> np.ndarray:
     if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
         raise InvalidScanError(field_name, f"last row must be [0, 0, 0, 1], got {T[3].tolist()}")
     R = T[:3, :3]
-    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: err is inf
+        err = float(np.max(np.abs(R.T @ R - np.eye(3))))
     if err > _ROTATION_TOLERANCE:
         raise InvalidScanError(
             field_name,
@@ -55,6 +79,111 @@ def check_pose(T_W_S: Any, field_name: str = "pose") -> np.ndarray:
     if np.linalg.det(R) < 0.0:
         raise InvalidScanError(field_name, "is a reflection (det R = -1), not a rotation")
     return T
+
+
+def check_range_layout(
+    dtype: np.dtype, shape: tuple[int, ...], sensor_shape: tuple[int, int] | None = None
+) -> None:
+    """Check a range map's dtype and shape (and that it fits a sensor of ``sensor_shape``)
+    before its data exist: a file's header is checked with the words :class:`Scan` uses."""
+    if dtype.kind != "f":
+        raise InvalidScanError(
+            "range",
+            f"must be a floating-point array of metres, got dtype {dtype} "
+            "(convert depth units to metres; invalid pixels are NaN)",
+        )
+    if len(shape) != 2:
+        raise InvalidScanError("range", f"must be a 2-D array (H x W), got shape {tuple(shape)}")
+    if sensor_shape is not None and tuple(shape) != tuple(sensor_shape):
+        raise InvalidScanError(
+            "range",
+            f"shape {tuple(shape)} does not match the sensor's height x width "
+            f"{tuple(sensor_shape)}",
+        )
+
+
+def _metres(value: float) -> str:
+    return f"{value:,.0f} m" if abs(value) >= 1000.0 else f"{value:.4g} m"
+
+
+def _measured_sample(range_m: np.ndarray, measured: int) -> np.ndarray:
+    """Up to about _SAMPLE of the finite ranges, taken at a fixed stride (float64)."""
+    flat = range_m.reshape(-1)
+    sample = flat[:: max(1, flat.size // _SAMPLE)]
+    sample = sample[np.isfinite(sample)]
+    if len(sample) < min(measured, 1000):  # sparse maps: the stride missed most of them
+        sample = flat[np.isfinite(flat)]
+    return sample.astype(np.float64)
+
+
+def check_far_ranges(
+    range_m: np.ndarray, max_range_m: float, accept: bool = False
+) -> tuple[np.ndarray, int]:
+    """Find the finite ranges beyond ``max_range_m`` and check that the map is in metres.
+
+    A finite range beyond the sensor's ``max_range`` is not a surface (the sensor cannot
+    measure it): :class:`Scan` sets those pixels to NaN. When most of the measured ranges lie
+    there, or they look like millimetres, the map is refused (docs/input-safety.md).
+
+    Parameters
+    ----------
+    range_m : array (H, W), float
+        Ranges in metres; ``+inf`` (no return) and NaN (invalid) are not measured ranges.
+    max_range_m : float
+        The sensor's ``max_range``.
+    accept : bool
+        Fuse the map anyway: no :class:`FarRangesError` (the far pixels are still found).
+
+    Returns
+    -------
+    far : array (H, W), bool
+        The finite ranges beyond ``max_range_m``.
+    count : int
+        How many there are.
+
+    Raises
+    ------
+    FarRangesError
+        Unless ``accept``: more than ``FAR_SHARE_LIMIT`` of the measured ranges lie beyond
+        ``max_range_m``, or at least ``WHOLE_SHARE_LIMIT`` of them are whole numbers with a
+        median over ``MILLIMETRE_MEDIAN_M`` metres. The message gives the evidence.
+    """
+    with np.errstate(over="ignore", invalid="ignore"):  # a max_range past float32: none far
+        far = (range_m > max_range_m) & (range_m != np.inf)
+    count = int(np.count_nonzero(far))
+    if accept or (count == 0 and max_range_m <= MILLIMETRE_MEDIAN_M):
+        return far, count  # below: the median can only pass 100 m if most ranges are far
+    measured = int(np.count_nonzero(np.isfinite(range_m)))
+    if measured == 0:
+        return far, count
+    sample = _measured_sample(range_m, measured)
+    median = float(np.median(sample))
+    share = count / measured
+    if share > FAR_SHARE_LIMIT:
+        largest = float(np.max(range_m[far]))
+        millimetres = median > 10.0 * max_range_m and median / 1000.0 <= max_range_m
+        hint = (
+            "depth in millimetres? Convert it to metres (depth_scale 0.001 for a PNG), or give "
+            "the sensor's real max_range"
+            if millimetres
+            else "give the sensor's real max_range, or check the units of the ranges"
+        )
+        raise FarRangesError(
+            "range",
+            f"{share:.0%} of the {measured:,} measured ranges lie beyond the sensor's "
+            f"max_range of {max_range_m:g} m (median {_metres(median)}, "
+            f"largest {_metres(largest)}): {hint}",
+        )
+    whole = float(np.mean(sample == np.round(sample)))
+    if whole >= WHOLE_SHARE_LIMIT and median > MILLIMETRE_MEDIAN_M:
+        raise FarRangesError(
+            "range",
+            f"the measured ranges look like millimetres, not metres: {whole:.0%} of them are "
+            f"whole numbers and their median is {_metres(median)} "
+            f"(max_range {max_range_m:g} m); "
+            "convert them to metres (depth_scale 0.001 for a PNG)",
+        )
+    return far, count
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,33 +201,37 @@ class Scan:
         The sensor model; ``range_m.shape`` must be ``(sensor.height, sensor.width)``.
     noise : NoiseModel or None
         Overrides the scene's noise model for this scan.
+    accept_far_ranges : bool
+        Keep a map whose measured ranges mostly lie beyond ``max_range`` or look like
+        millimetres (:func:`check_far_ranges`); without it, :class:`FarRangesError`.
+
+    Attributes
+    ----------
+    far_ranges : int
+        Finite ranges beyond the sensor's ``max_range`` that were set to NaN (invalid).
     """
 
     range_m: np.ndarray
     T_W_S: np.ndarray
     sensor: Sensor
     noise: NoiseModel | None = field(default=None)
+    accept_far_ranges: InitVar[bool] = False
+    far_ranges: int = field(default=0, init=False)
 
-    def __post_init__(self) -> None:
+    def __post_init__(self, accept_far_ranges: bool) -> None:
         if not isinstance(self.sensor, Sensor):
             raise InvalidScanError("sensor", f"must be a Sensor, got {type(self.sensor).__name__}")
         rng = self.range_m
         if not isinstance(rng, np.ndarray):
             raise InvalidScanError("range", f"must be a NumPy array, got {type(rng).__name__}")
-        if rng.dtype.kind != "f":
-            raise InvalidScanError(
-                "range",
-                f"must be a floating-point array of metres, got dtype {rng.dtype} "
-                "(convert depth units to metres; invalid pixels are NaN)",
-            )
-        if rng.ndim != 2:
-            raise InvalidScanError("range", f"must be a 2-D array (H x W), got shape {rng.shape}")
-        if rng.shape != self.sensor.shape:
-            raise InvalidScanError(
-                "range",
-                f"shape {rng.shape} does not match the sensor's height x width {self.sensor.shape}",
-            )
-        rng32 = np.ascontiguousarray(rng, dtype=np.float32)
+        check_range_layout(rng.dtype, rng.shape, self.sensor.shape)
+        with np.errstate(over="ignore", invalid="ignore"):
+            rng32 = np.ascontiguousarray(rng, dtype=np.float32)
+        if rng32 is not rng and rng.dtype.itemsize > 4 and np.isinf(rng32).any():
+            # finite values past float32's range are far ranges, not "no return" (+inf)
+            with np.errstate(invalid="ignore"):
+                lost = np.isinf(rng32) & np.isfinite(rng)
+            rng32[lost] = np.copysign(np.finfo(np.float32).max, rng32[lost])
         with np.errstate(invalid="ignore"):
             bad = int(np.count_nonzero(rng32 <= 0.0))
         if bad:
@@ -107,9 +240,14 @@ class Scan:
                 f"{bad} pixels are <= 0 or -inf; ranges are positive metres, "
                 "invalid pixels must be NaN",
             )
+        far, count = check_far_ranges(rng32, self.sensor.max_range, bool(accept_far_ranges))
         if rng32 is rng:
             rng32 = rng32.copy()
+        if count:
+            rng32[far] = np.nan
+        del far
         rng32.setflags(write=False)
+        object.__setattr__(self, "far_ranges", count)
         object.__setattr__(self, "range_m", rng32)
         T = check_pose(self.T_W_S)
         T.setflags(write=False)

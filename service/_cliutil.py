@@ -12,11 +12,13 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from rangefuse.engine import DenseGrid, InvalidInputError
+from rangefuse.engine import DenseGrid, InvalidInputError, Scan
 from rangefuse.engine.budget import LIMITS, Limits
+from rangefuse.engine.errors import FarRangesError
 from rangefuse.engine.meshing import Mesh
 from rangefuse.engine.params import Param
 from rangefuse.storage import write_grid
+from rangefuse.storage.bounded import DEFAULT_MAX_PIXELS, LIMIT_SETTING
 from rangefuse.storage.meshes import MeshFormatError, mesh_format, write_mesh
 
 
@@ -237,3 +239,56 @@ def budget_limits(args: argparse.Namespace, in_memory: bool = False) -> Limits:
                 f"; by default {_MEMORY_SHARE:.0%} of this machine's memory when fusing in memory"
             )
     return Limits(**values, knobs=knobs)
+
+
+# --- reading scan files (docs/input-safety.md) ------------------------------------------------
+
+
+def add_far_ranges_option(parser: argparse.ArgumentParser) -> None:
+    """``--accept-far-ranges``: fuse range maps that the range sanity check would refuse."""
+    parser.add_argument(
+        "--accept-far-ranges",
+        action="store_true",
+        help="fuse scans whose measured ranges mostly lie beyond the sensor's max_range or "
+        "look like millimetres (refused otherwise); ranges beyond max_range stay invalid",
+    )
+
+
+def scan_read_options(args: argparse.Namespace) -> dict[str, Any]:
+    """How scan files are read: the pixel limit ``RANGEFUSE_MAX_PIXELS`` (as the service
+    reads it) and ``--accept-far-ranges``."""
+    text = os.environ.get(LIMIT_SETTING)
+    max_pixels = DEFAULT_MAX_PIXELS
+    if text is not None:
+        try:
+            max_pixels = int(text)
+        except ValueError:
+            max_pixels = 0
+        if max_pixels < 1:
+            raise CommandError(f"{LIMIT_SETTING}: must be a positive integer, got {text!r}")
+    accept = bool(getattr(args, "accept_far_ranges", False))
+    if accept and getattr(args, "format", None):
+        raise CommandError(
+            "--accept-far-ranges applies to dataset folders; with --format, give the source's "
+            "--depth-scale or --max-range instead"
+        )
+    return {"max_pixels": max_pixels, "accept_far_ranges": accept}
+
+
+def far_ranges_note(scan: Scan) -> str:
+    """`` (N ranges beyond max_range M m set invalid)`` for a scan that had some, else ''."""
+    if not scan.far_ranges:
+        return ""
+    return (
+        f" ({scan.far_ranges:,} ranges beyond the sensor's max_range of "
+        f"{scan.sensor.max_range:g} m set invalid)"
+    )
+
+
+def far_ranges_hint(args: argparse.Namespace, exc: Exception) -> str:
+    """What to add to a refusal of far ranges: the option that overrides it, if any."""
+    if not isinstance(exc, FarRangesError) or not hasattr(args, "accept_far_ranges"):
+        return ""
+    if getattr(args, "format", None):
+        return ""
+    return "; to fuse it anyway, pass --accept-far-ranges"

@@ -26,12 +26,15 @@ from rangefuse.storage.units import InProcess, Runner
 from ._cliutil import (
     CommandError,
     add_budget_options,
+    add_far_ranges_option,
     add_output_options,
     budget_limits,
     check_outputs,
+    far_ranges_note,
     finite_float,
     positive_float,
     positive_int,
+    scan_read_options,
     write_outputs,
 )
 from ._progress import ProgressBar
@@ -61,7 +64,8 @@ def _store_and_integrate(
             continue
         scene.store_scan(scan_id, scan, name=scan_id)
         stored += 1
-        print(f"stored {scan_id}", flush=True)  # the acknowledgement: durable from here on
+        # the acknowledgement: durable from here on
+        print(f"stored {scan_id}{far_ranges_note(scan)}", flush=True)
     pending = len(scene.scan_rows(("stored",)))
     bar = ProgressBar(label, enabled=not quiet)
     try:
@@ -96,7 +100,7 @@ def fuse_into_store(
     limits: Limits,
 ) -> int:
     """``rangefuse fuse DATASET --store DIR``."""
-    dataset = open_dataset(dataset_path)
+    dataset = open_dataset(dataset_path, **scan_read_options(args))
     if not Path(args.store).exists():  # the budgets before the store is created
         check_scans(dataset.scans(), params, grid, limits)
     with (
@@ -161,7 +165,8 @@ def _cmd_add(args: argparse.Namespace) -> int:
                 default = sensor_from_dict(json.loads(sensor_path.read_text()))
             except (OSError, ValueError) as exc:
                 raise CommandError(f"{sensor_path}: not a usable sensor.json ({exc})") from None
-        scans.append((path.stem, read_scan_file(path, default)))  # all read before storing
+        # all read before storing
+        scans.append((path.stem, read_scan_file(path, default, **scan_read_options(args))))
     with _runner(args) as runner, _open_existing(args, runner) as scene:
         duplicate = [s for s, _ in scans if s in scene]
         if duplicate:
@@ -229,6 +234,7 @@ def add_store_commands(sub: argparse._SubParsersAction) -> None:
     cache_option(add)
     workers_option(add)
     add_budget_options(add)
+    add_far_ranges_option(add)
     add.add_argument("--quiet", action="store_true", help="no progress bar")
     add.set_defaults(func=_cmd_add)
 

@@ -25,13 +25,17 @@ from rangefuse.storage import DatasetError, StoreError, open_dataset, write_data
 from ._cliutil import (
     CommandError,
     add_budget_options,
+    add_far_ranges_option,
     add_output_options,
     add_param_option,
     budget_limits,
     check_outputs,
     check_writable,
+    far_ranges_hint,
+    far_ranges_note,
     positive_float,
     positive_int,
+    scan_read_options,
     write_outputs,
 )
 from ._import_cli import add_import_command, read_source_for_fuse
@@ -130,7 +134,8 @@ def _kept(items: Iterable[tuple[str, Scan]], into: list) -> Iterable[tuple[str, 
 
 def _cmd_fuse(args: argparse.Namespace) -> int:
     # --format KIND: a source in a foreign format, read into memory (service/_import_cli.py)
-    dataset = read_source_for_fuse(args) if args.format else open_dataset(args.dataset)
+    read = scan_read_options(args)  # pixel limit, --accept-far-ranges
+    dataset = read_source_for_fuse(args) if args.format else open_dataset(args.dataset, **read)
     noise = _noise_from_args(args)
     params = FusionParams(
         noise=noise,
@@ -157,6 +162,9 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
         return fuse_into_store(args, args.dataset, grid, params, limits)
     scans: list[tuple[str, Scan]] = []
     check_scans(_kept(dataset.scans(), scans), params, grid, limits)
+    for name, scan in scans:
+        if scan.far_ranges:
+            print(f"note: {name}:{far_ranges_note(scan)}", file=sys.stderr)
     volume = Volume(grid, params)
     bar = ProgressBar("fuse", enabled=not args.quiet)
     try:
@@ -226,6 +234,7 @@ def build_parser() -> argparse.ArgumentParser:
     cache_option(fuse)
     workers_option(fuse)
     add_budget_options(fuse, in_memory=True)
+    add_far_ranges_option(fuse)
     fuse.add_argument("--quiet", action="store_true", help="no progress bar")
     fuse.set_defaults(func=_cmd_fuse)
     add_store_commands(sub)
@@ -241,7 +250,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args))
     except (CommandError, InvalidInputError, DatasetError, StoreError) as exc:
-        print(f"rangefuse {args.command}: error: {exc}", file=sys.stderr)
+        print(
+            f"rangefuse {args.command}: error: {exc}{far_ranges_hint(args, exc)}", file=sys.stderr
+        )
         return 2
     except KeyboardInterrupt:
         print(f"rangefuse {args.command}: interrupted", file=sys.stderr)

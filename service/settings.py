@@ -8,6 +8,7 @@ from dask.utils import parse_bytes
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 from rangefuse.engine.budget import LIMITS
+from rangefuse.storage.bounded import DEFAULT_MAX_PIXELS
 
 __all__ = ["Settings"]
 
@@ -21,6 +22,10 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(default=8000, ge=1, le=65535)
     max_upload_mb: float = Field(default=256.0, gt=0, description="largest request body")
+    max_pixels: int = Field(
+        default=DEFAULT_MAX_PIXELS, ge=1,
+        description="largest range map an upload may declare (pixels); checked before it is read",
+    )  # fmt: skip
     workers: int = Field(
         default=2, ge=1, le=64,
         description="Dask worker processes the service starts (when it joins no scheduler)",

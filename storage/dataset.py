@@ -1,7 +1,9 @@
 """The FORMAT.md dataset folder: ``sensor.json`` and ``scans/*.npz``.
 
-Reading never unpickles (``allow_pickle=False``) and refuses malformed files
-with a :class:`DatasetError` whose message names the file and what is wrong.
+Reading never unpickles, never reads more than a header declares, and checks the range
+map's declared size against a pixel limit before reading it (:mod:`storage.bounded`);
+it refuses malformed files with a :class:`DatasetError` whose message names the file and
+what is wrong.
 Writing goes through a temporary file and a rename, so an interrupted writer
 never leaves a half-written scan behind.
 """
@@ -10,21 +12,23 @@ from __future__ import annotations
 
 import json
 import os
-import zipfile
-import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rangefuse.engine import InvalidInputError, Scan, Sensor, sensor_from_dict
+from rangefuse.engine import InvalidInputError, InvalidScanError, Scan, Sensor, sensor_from_dict
+from rangefuse.engine.errors import FarRangesError
+from rangefuse.engine.scans import check_range_layout
 
 from ._files import atomic_write, atomic_write_text
+from .bounded import DEFAULT_MAX_PIXELS, DecodeError, NpyHeader, NpzArchive, check_pixels
 
 __all__ = [
     "Dataset",
     "DatasetError",
+    "check_range_header",
     "open_dataset",
     "read_scan_file",
     "write_dataset",
@@ -48,22 +52,9 @@ def _sensor_from_json(text: str, where: str) -> Sensor:
         return sensor_from_dict(data)
     except InvalidInputError as exc:
         raise DatasetError(f"{where}: {exc}") from None
-    except (TypeError, ValueError) as exc:  # defence in depth: a value of a foreign type
+    except (TypeError, ValueError, OverflowError, AttributeError, KeyError) as exc:
+        # defence in depth: a value of a foreign type, an integer too large for a float
         raise DatasetError(f"{where}: not a valid sensor ({exc})") from None
-
-
-#: What reading a damaged or foreign file can raise inside ``np.load`` and ``zipfile``:
-#: truncation, bad CRCs or deflate streams, unsupported zip features, encrypted members,
-#: a corrupted ``.npy`` header claiming an impossible shape.
-_READ_ERRORS = (
-    OSError,
-    EOFError,
-    zipfile.BadZipFile,
-    zlib.error,
-    NotImplementedError,
-    RuntimeError,
-    MemoryError,
-)
 
 
 def _read_npz(
@@ -71,81 +62,123 @@ def _read_npz(
 ) -> dict[str, np.ndarray]:
     """The ``required`` and present ``optional`` arrays of an ``.npz`` file, by key.
 
-    Never unpickles (``allow_pickle=False``); every failure is a :class:`DatasetError`
-    naming ``where`` and, once the archive opens, the key. Shared with :mod:`storage.grids`.
+    Never unpickles; reads each member through :class:`storage.bounded.NpzArchive` (never more
+    than its header declares); every failure is a :class:`DatasetError` naming ``where`` and,
+    once the archive opens, the key. Shared with :mod:`storage.grids`.
     """
     try:
-        loaded = np.load(path, allow_pickle=False)
-    except ValueError as exc:
-        if "pickle" in str(exc).lower():  # neither zip nor .npy magic: np.load would unpickle
-            raise DatasetError(
-                f"{where}: not an .npz file (neither a zip archive nor NumPy data)"
-            ) from None
-        raise DatasetError(f"{where}: not a readable .npz file ({exc})") from None
-    except _READ_ERRORS as exc:
-        raise DatasetError(f"{where}: not a readable .npz file ({exc})") from None
-    if not isinstance(loaded, np.lib.npyio.NpzFile):
-        raise DatasetError(
-            f"{where}: holds a single .npy array, not an .npz archive with keys "
-            + ", ".join(map(repr, required))
+        with NpzArchive(path, where, required) as npz:
+            for key in required:
+                if key not in npz:
+                    raise DatasetError(f"{where}: missing key {key!r} (has {npz.keys})")
+            return {
+                key: npz.read(key, npz.header(key)) for key in required + optional if key in npz
+            }
+    except DecodeError as exc:
+        raise DatasetError(str(exc)) from None
+
+
+#: Largest per-scan ``sensor`` JSON read (bytes).
+_MAX_SENSOR_BYTES = 1 << 20
+
+
+def _scan_sensor(npz: NpzArchive, where: str, default: Sensor | None) -> Sensor:
+    if "sensor" not in npz:
+        if default is None:
+            raise DatasetError(f"{where}: no per-scan 'sensor' and no {SENSOR_FILE} in the dataset")
+        return default
+    header = npz.header("sensor")
+    if header.dtype.kind not in "US" or header.shape != ():
+        raise DatasetError(f"{where}: key 'sensor' must be a JSON string")
+    if header.nbytes > _MAX_SENSOR_BYTES:
+        raise DatasetError(f"{where}: key 'sensor' is over {_MAX_SENSOR_BYTES:,} bytes")
+    value = npz.read("sensor", header).item()
+    if isinstance(value, bytes):
+        try:
+            value = value.decode()
+        except UnicodeDecodeError:
+            raise DatasetError(f"{where}: key 'sensor' is not UTF-8 text") from None
+    return _sensor_from_json(value, f"{where}: sensor")
+
+
+def _scan_pose(npz: NpzArchive, where: str) -> np.ndarray:
+    header = npz.header("pose")
+    if header.dtype.kind not in "fiu":
+        raise DatasetError(f"{where}: pose: must be numeric, got dtype {header.dtype}")
+    if header.shape != (4, 4):  # the words of engine.check_pose
+        raise DatasetError(f"{where}: pose: must be 4x4, got shape {header.shape}")
+    return npz.read("pose", header).astype(np.float64)
+
+
+def check_range_header(
+    header: NpyHeader, where: str, what: str, sensor: Sensor | None, max_pixels: int | None
+) -> None:
+    """Check a range map's declared dtype and shape before it is read: a float array of
+    2 dimensions, at most ``max_pixels`` pixels, of the sensor's height x width. Raises
+    :class:`engine.InvalidScanError` (the scan's own words) or :class:`DecodeError`."""
+    check_range_layout(header.dtype, header.shape)
+    if header.dtype.itemsize > 8:
+        raise InvalidScanError(
+            "range", f"must be float16, float32 or float64, got dtype {header.dtype}"
         )
-    arrays: dict[str, np.ndarray] = {}
-    with loaded as npz:
-        names = set(npz.files)
-        for key in required:
-            if key not in names:
-                raise DatasetError(f"{where}: missing key {key!r} (has {sorted(names)})")
-        for key in required + optional:
-            if key not in names:
-                continue
-            try:
-                arrays[key] = npz[key]
-            except (ValueError, *_READ_ERRORS) as exc:
-                if isinstance(exc, ValueError) and "pickle" in str(exc).lower():
-                    raise DatasetError(
-                        f"{where}: key {key!r} holds pickled Python objects (dtype object), "
-                        "which are never loaded"
-                    ) from None
-                raise DatasetError(
-                    f"{where}: key {key!r} is not a readable array ({exc})"
-                ) from None
-    return arrays
+    check_pixels(where, what, header.shape[0], header.shape[1], max_pixels)
+    check_range_layout(header.dtype, header.shape, None if sensor is None else sensor.shape)
 
 
-def read_scan_file(path: str | os.PathLike[str], default_sensor: Sensor | None) -> Scan:
+def read_scan_file(
+    path: str | os.PathLike[str] | bytes,
+    default_sensor: Sensor | None,
+    *,
+    max_pixels: int | None = DEFAULT_MAX_PIXELS,
+    accept_far_ranges: bool = False,
+    where: str | None = None,
+) -> Scan:
     """Read one ``scans/*.npz`` file (FORMAT.md) into a validated :class:`Scan`.
+
+    The ``range`` key's header is checked (dtype, 2-D, at most ``max_pixels`` pixels, the
+    sensor's height x width) before its data are read, and no member is ever inflated past
+    what its header declares (:class:`storage.bounded.NpzArchive`).
+
+    Parameters
+    ----------
+    path : path-like or bytes
+        The file, or its contents (an upload; then give ``where``).
+    default_sensor : Sensor or None
+        The dataset's ``sensor.json``; a per-scan ``sensor`` key replaces it.
+    max_pixels : int or None
+        Largest range map read (None: no limit).
+    accept_far_ranges : bool
+        Passed to :class:`Scan`: keep a map whose ranges mostly lie beyond ``max_range``.
+    where : str or None
+        Names the file in messages (default: the path).
 
     Raises
     ------
     DatasetError
-        For a file that is not a readable ``.npz`` (truncated, corrupted, pickled objects),
-        a missing key, or a range map, pose or sensor that fails validation; the message
-        names the file and the key or field.
+        For a file that is not a readable ``.npz`` (truncated, corrupted, pickled objects,
+        a header declaring too much), a missing key, or a range map, pose or sensor that fails
+        validation; the message names the file and the key or field.
+    engine.FarRangesError
+        A range map whose ranges mostly lie beyond the sensor's ``max_range`` or look like
+        millimetres (unless ``accept_far_ranges``); the message names the file.
     """
-    path = Path(path)
-    where = str(path)
-    arrays = _read_npz(path, where, ("range", "pose"), ("sensor",))
-    range_m = arrays["range"]
-    pose = arrays["pose"]
-    sensor_text = arrays.get("sensor")
-    if sensor_text is not None:
-        if sensor_text.dtype.kind not in "US" or sensor_text.ndim != 0:
-            raise DatasetError(f"{where}: key 'sensor' must be a JSON string")
-        value = sensor_text.item()
-        if isinstance(value, bytes):
-            try:
-                value = value.decode()
-            except UnicodeDecodeError:
-                raise DatasetError(f"{where}: key 'sensor' is not UTF-8 text") from None
-        sensor = _sensor_from_json(value, f"{where}: sensor")
-    elif default_sensor is not None:
-        sensor = default_sensor
-    else:
-        raise DatasetError(f"{where}: no per-scan 'sensor' and no {SENSOR_FILE} in the dataset")
-    if pose.dtype.kind not in "fiu":
-        raise DatasetError(f"{where}: pose: must be numeric, got dtype {pose.dtype}")
+    if where is None:
+        where = str(path) if not isinstance(path, bytes) else "scan"
     try:
-        return Scan(range_m=range_m, T_W_S=pose.astype(np.float64), sensor=sensor)
+        with NpzArchive(path, where, ("range", "pose")) as npz:
+            for key in ("range", "pose"):
+                if key not in npz:
+                    raise DatasetError(f"{where}: missing key {key!r} (has {npz.keys})")
+            sensor = _scan_sensor(npz, where, default_sensor)
+            pose = _scan_pose(npz, where)
+            header = npz.header("range")
+            check_range_header(header, where, "key 'range'", sensor, max_pixels)
+            range_m = npz.read("range", header)
+        return Scan(range_m, pose, sensor, accept_far_ranges=accept_far_ranges)
+    except DecodeError as exc:
+        raise DatasetError(str(exc)) from None
+    except FarRangesError as exc:
+        raise FarRangesError(f"{where}: {exc.field}", exc.problem) from None
     except InvalidInputError as exc:
         raise DatasetError(f"{where}: {exc}") from None
 
@@ -157,6 +190,8 @@ class Dataset:
     path: Path
     sensor: Sensor | None
     scan_paths: tuple[Path, ...]
+    max_pixels: int | None = DEFAULT_MAX_PIXELS
+    accept_far_ranges: bool = False
 
     def __len__(self) -> int:
         return len(self.scan_paths)
@@ -169,11 +204,26 @@ class Dataset:
     def scans(self) -> Iterator[tuple[str, Scan]]:
         """Yield ``(name, Scan)`` in file-name order, reading one file at a time."""
         for p in self.scan_paths:
-            yield p.stem, read_scan_file(p, self.sensor)
+            yield (
+                p.stem,
+                read_scan_file(
+                    p,
+                    self.sensor,
+                    max_pixels=self.max_pixels,
+                    accept_far_ranges=self.accept_far_ranges,
+                ),
+            )
 
 
-def open_dataset(path: str | os.PathLike[str]) -> Dataset:
-    """Open a FORMAT.md dataset folder (reads ``sensor.json`` and lists ``scans/*.npz``)."""
+def open_dataset(
+    path: str | os.PathLike[str],
+    *,
+    max_pixels: int | None = DEFAULT_MAX_PIXELS,
+    accept_far_ranges: bool = False,
+) -> Dataset:
+    """Open a FORMAT.md dataset folder (reads ``sensor.json`` and lists ``scans/*.npz``);
+    its scans are read with ``max_pixels`` and ``accept_far_ranges`` (see
+    :func:`read_scan_file`)."""
     root = Path(path)
     if not root.exists():
         raise DatasetError(f"{root}: no such dataset folder")
@@ -193,7 +243,7 @@ def open_dataset(path: str | os.PathLike[str]) -> Dataset:
     paths = tuple(sorted(p for p in scans_dir.glob("*.npz") if p.is_file()))
     if not paths:
         raise DatasetError(f"{scans_dir}: no .npz scans")
-    return Dataset(root, sensor, paths)
+    return Dataset(root, sensor, paths, max_pixels, accept_far_ranges)
 
 
 def write_scan_file(path: str | os.PathLike[str], scan: Scan, include_sensor: bool) -> None:

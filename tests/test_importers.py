@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rangefuse.engine import PinholeSensor, Scan
+from rangefuse.engine.errors import FarRangesError
 from rangefuse.storage import open_dataset
 from rangefuse.storage.importers import (
     ImportOptions,
@@ -160,8 +161,10 @@ def test_7scenes_options(seven_scenes: Path, camera_scans: list[Scan]) -> None:
 
 
 def test_7scenes_depth_scale_off_by_1000(seven_scenes: Path) -> None:
-    (warning,) = read_source("7scenes", seven_scenes, ImportOptions(depth_scale_m=1.0)).warnings
-    assert "1000 times too large" in warning and "median measured range" in warning
+    # millimetres read as metres: the engine's range sanity check refuses the scans (the
+    # importer's max_range grows with the data, so the ranges are whole numbers near 1000 m)
+    with pytest.raises(FarRangesError, match="look like millimetres"):
+        read_source("7scenes", seven_scenes, ImportOptions(depth_scale_m=1.0))
 
 
 def test_7scenes_inverted_poses(tmp_path: Path, camera_scans: list[Scan]) -> None:
@@ -435,10 +438,17 @@ def test_cli_import_prints_warnings_and_fails_cleanly(
     tmp_path: Path, seven_scenes: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     code, _, err = run_main(
-        ["import", "7scenes", seven_scenes, tmp_path / "mm", "--depth-scale", "1"], capsys
+        ["import", "7scenes", seven_scenes, tmp_path / "km", "--depth-scale", "0.000001"], capsys
     )
     assert code == 0
     assert "rangefuse import: warning: the median measured range" in err
+    # millimetres read as metres: refused by the engine's range sanity check, one line
+    code, _, err = run_main(
+        ["import", "7scenes", seven_scenes, tmp_path / "mm", "--depth-scale", "1"], capsys
+    )
+    assert code == 2 and not (tmp_path / "mm").exists()
+    assert err.startswith("rangefuse import: error: range: the measured ranges look like milli")
+    assert len(err.strip().splitlines()) == 1
     broken = tmp_path / "broken"
     broken.mkdir()
     for p in seven_scenes.iterdir():
@@ -448,7 +458,7 @@ def test_cli_import_prints_warnings_and_fails_cleanly(
     assert code == 2
     assert "rangefuse import: error:" in err and "frame-000003.depth.png: not a PNG file" in err
     assert "Traceback" not in err
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken", "mm"]  # nothing half-written
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken", "km"]  # nothing half-written
     code, _, err = run_main(["import", "tum", tmp_path / "nowhere", tmp_path / "dst"], capsys)
     assert code == 2 and "nowhere: no such folder" in err
 

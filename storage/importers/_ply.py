@@ -83,6 +83,11 @@ def _header(path: Path, blob: bytes) -> tuple[str, list[PlyElement], dict[str, s
                 elements.append(PlyElement(tokens[1], int(tokens[2])))
             except (IndexError, ValueError):
                 raise SourceError(f"{where}: malformed element line {line!r}") from None
+            if not 0 <= elements[-1].count <= len(blob):  # each takes a byte at least
+                raise SourceError(
+                    f"{where}: element {tokens[1]!r} declares {tokens[2]} items, more than "
+                    f"the file's {len(blob):,} bytes can hold"
+                )
         elif tokens[0] == "property":
             if not elements:
                 raise SourceError(f"{where}: property before any element")

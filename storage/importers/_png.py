@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit
 
 from .._files import atomic_write
+from ..bounded import DEFAULT_MAX_PIXELS, DecodeError, check_pixels
 from .errors import SourceError
 
 __all__ = ["FILTERS", "decode_png", "encode_png", "read_png", "write_png"]
@@ -84,8 +85,17 @@ def read_png(path: str | os.PathLike[str]) -> np.ndarray:
     return decode_png(data, str(path))
 
 
-def decode_png(data: bytes, where: str = "PNG") -> np.ndarray:
+def decode_png(
+    data: bytes,
+    where: str = "PNG",
+    max_pixels: int | None = DEFAULT_MAX_PIXELS,
+    shape: tuple[int, int] | None = None,
+) -> np.ndarray:
     """Decode a greyscale PNG.
+
+    The header's size is checked against ``max_pixels`` and ``shape`` before anything is
+    inflated, and the image data are inflated in steps into one buffer of the size the
+    header declares, never past it (a small file can inflate to gigabytes).
 
     Parameters
     ----------
@@ -93,6 +103,10 @@ def decode_png(data: bytes, where: str = "PNG") -> np.ndarray:
         The file's contents.
     where : str
         Names the data in messages (a file name).
+    max_pixels : int or None
+        Largest image decoded (None: no limit).
+    shape : (height, width) or None
+        The size the image must have (a sensor's), when known.
 
     Returns
     -------
@@ -102,24 +116,26 @@ def decode_png(data: bytes, where: str = "PNG") -> np.ndarray:
     Raises
     ------
     SourceError
-        For data that are not a PNG, truncated or corrupted (CRC), or a PNG that is not
-        plain greyscale at 8 or 16 bits without interlace; the message starts with ``where``.
+        For data that are not a PNG, truncated or corrupted (CRC), a PNG that is not plain
+        greyscale at 8 or 16 bits without interlace, or one over ``max_pixels`` or not of
+        ``shape``; the message starts with ``where``.
     """
     path = where
     if not data.startswith(_SIGNATURE):
         raise SourceError(f"{path}: not a PNG file")
     pos = len(_SIGNATURE)
     header: tuple[int, ...] | None = None
-    idat: list[bytes] = []
+    idat: list[memoryview] = []  # views of data: the chunks are not copied
+    view = memoryview(data)
     ended = False
     while pos + 8 <= len(data):
         (length,) = struct.unpack(">I", data[pos : pos + 4])
         kind = data[pos + 4 : pos + 8]
-        body = data[pos + 8 : pos + 8 + length]
+        body = view[pos + 8 : pos + 8 + length]
         crc_bytes = data[pos + 8 + length : pos + 12 + length]
         if len(body) != length or len(crc_bytes) != 4:
             raise SourceError(f"{path}: truncated PNG (chunk {kind!r} is cut short)")
-        if zlib.crc32(kind + body) != struct.unpack(">I", crc_bytes)[0]:
+        if zlib.crc32(body, zlib.crc32(kind)) != struct.unpack(">I", crc_bytes)[0]:
             raise SourceError(f"{path}: corrupted PNG (CRC mismatch in chunk {kind!r})")
         pos += 12 + length
         if kind == b"IHDR":
@@ -145,25 +161,58 @@ def decode_png(data: bytes, where: str = "PNG") -> np.ndarray:
         raise SourceError(f"{path}: interlaced (Adam7) PNGs are not supported")
     if width == 0 or height == 0:
         raise SourceError(f"{path}: empty PNG ({width}x{height})")
+    try:
+        check_pixels(path, "PNG", height, width, max_pixels)
+    except DecodeError as exc:
+        raise SourceError(str(exc)) from None
+    if shape is not None and (height, width) != tuple(shape):
+        raise SourceError(
+            f"{path}: shape {(height, width)} does not match the sensor's height x width "
+            f"{tuple(shape)}"
+        )
     bpp = depth // 8
     stride = width * bpp
-    expected = height * (stride + 1)
-    try:  # never inflate more than the image needs (a hostile file may claim gigabytes)
-        raw = zlib.decompressobj().decompress(b"".join(idat), expected + 1)
-    except zlib.error as exc:
-        raise SourceError(f"{path}: corrupted PNG image data ({exc})") from None
-    if len(raw) != expected:
-        raise SourceError(
-            f"{path}: PNG image data is {'longer' if len(raw) > expected else 'shorter'} than "
-            f"its {width}x{height} header says ({expected} bytes)"
-        )
+    raw = _inflate(idat, height * (stride + 1), f"{width}x{height}", path)
     out = np.empty((height, stride), np.uint8)
-    bad_row = _unfilter(np.frombuffer(raw, np.uint8), height, stride, bpp, out)
+    bad_row = _unfilter(raw, height, stride, bpp, out)
     if bad_row >= 0:
         raise SourceError(f"{path}: unknown PNG filter type in row {bad_row}")
     if depth == 16:
         return out.view(">u2").astype(np.uint16).reshape(height, width)
     return out.reshape(height, width)
+
+
+def _inflate(stream: list[memoryview], expected: int, size: str, path: str) -> np.ndarray:
+    """Inflate the IDAT chunks ``stream`` into ``expected`` bytes, in steps that never produce
+    more than the room left (plus one byte, to see that a stream is longer than its header
+    says)."""
+    out = np.empty(expected, np.uint8)
+    filled = 0
+    inflater = zlib.decompressobj()
+    try:
+        for part in [*stream, memoryview(b"")]:  # the empty one drains what is held back
+            pending: bytes | memoryview = part
+            while True:
+                chunk = inflater.decompress(pending, expected - filled + 1)
+                if len(chunk) > expected - filled:
+                    raise SourceError(
+                        f"{path}: PNG image data is longer than its {size} header says "
+                        f"({expected} bytes)"
+                    )
+                out[filled : filled + len(chunk)] = np.frombuffer(chunk, np.uint8)
+                filled += len(chunk)
+                pending = inflater.unconsumed_tail
+                if inflater.eof or not pending:
+                    break
+            if inflater.eof:
+                break
+    except zlib.error as exc:
+        raise SourceError(f"{path}: corrupted PNG image data ({exc})") from None
+    if filled != expected:
+        raise SourceError(
+            f"{path}: PNG image data is shorter than its {size} header says ({expected} bytes)"
+        )
+    return out
 
 
 def _filter_rows(rows: np.ndarray, bpp: int, ftype: int) -> np.ndarray:

@@ -53,7 +53,9 @@ _MULTIPART = {
                     "meta": {
                         "type": "string",
                         "description": "JSON: pose (4x4 sensor to world), sensor, and "
-                        f"optionally name, noise {{{_NOISE}}}, depth_scale",
+                        f"optionally name, noise {{{_NOISE}}}, depth_scale, accept_far_ranges "
+                        "(true: fuse a range map that mostly lies beyond the sensor's max_range "
+                        "or looks like millimetres, refused with 422 otherwise)",
                     },
                 },
             }
@@ -144,7 +146,9 @@ async def upload_scan(
     if idempotency_key is not None and not 0 < len(idempotency_key) <= 200:
         raise HTTPException(400, "Idempotency-Key: must be 1 to 200 characters")
     parts = await _read_parts(request, settings.max_upload_mb)
-    uploaded = await run_in_threadpool(decode_scan, parts["range"], parts["meta"])
+    uploaded = await run_in_threadpool(
+        decode_scan, parts["range"], parts["meta"], settings.max_pixels
+    )
     await run_in_threadpool(check_upload, store, scene, uploaded.scan, settings)  # budgets
     digest = None
     if idempotency_key is not None:

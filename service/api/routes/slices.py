@@ -9,7 +9,7 @@ import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Response
 from rangefuse.engine import GridSpec
 from rangefuse.engine.certainty import decode_logodds
-from rangefuse.engine.grid import unpack_keys
+from rangefuse.engine.grid import KEY_LIMIT, unpack_keys
 from rangefuse.storage import Store
 from rangefuse.storage.importers import encode_png
 
@@ -39,6 +39,11 @@ def get_slice(
     if not math.isfinite(at):
         raise HTTPException(422, "at: must be a finite number of metres")
     grid = GridSpec.from_dict(scene.grid)
+    reach_m = KEY_LIMIT * grid.tile_size * grid.voxel_size  # where tile keys can lie
+    if abs(at) > reach_m:
+        raise HTTPException(
+            422, f"at: {at:g} m lies beyond the grid's reach of +-{reach_m:g} m from the origin"
+        )
     png = _slice_png(store(), scene.id, grid, "xyz".index(axis), at)
     return Response(png, media_type="image/png")
 
