@@ -283,44 +283,86 @@ def _step_tiles(
     spike, a flying pixel) or a thin object between the sampled pixels allocates a column
     of tiles along its line of sight that the blocks do not see. Quads in one bin of about
     a tile's width in pixels share their columns. Also which blocks (their first sampled
-    rows and columns: ``blocks``) hold a step."""
-    r = scan.range_m
+    rows and columns: ``blocks``) hold a step.
+
+    The image is read in stripes of rows (:data:`_STRIPE_PIXELS` quads at a time), so that
+    the memory it takes stays a few stripes whatever the image's size: a 4096 x 4096 map
+    took 470 to 610 MB in one piece."""
     kind, p, _ = scan.sensor.kernel_args()
-    if _wraps(kind, p):  # the quad between the last column and the first
-        r = np.concatenate([r, r[:, :1]], axis=1)
-    with np.errstate(invalid="ignore"):
-        r = np.where(r < np.inf, r, np.nan)  # no return: no surface
-        a, b, c, d = r[:-1, :-1], r[:-1, 1:], r[1:, :-1], r[1:, 1:]
-        lo = np.minimum(np.minimum(a, b), np.minimum(c, d))
-        spread = np.maximum(np.maximum(a, b), np.maximum(c, d)) - lo
-        # a step: across more than half a tile, and three times its least neighbour's spread
-        # (a surface seen at a grazing angle spreads about as much in its neighbours)
-        nb = np.pad(spread, 1, constant_values=np.nan)
+    wrap = _wraps(kind, p)  # the quad between the last column and the first
+    n_rows = scan.range_m.shape[0] - 1
+    width = scan.range_m.shape[1] - (0 if wrap else 1)
+    stripe = max(1, _STRIPE_PIXELS // max(width, 1))
+    step = np.zeros((max(n_rows, 0), max(width, 0)), np.bool_)
+    n_step, lo_sum = 0, 0.0
+    for q0 in range(0, n_rows, stripe):
+        q1 = min(n_rows, q0 + stripe)
+        lo, spread = _quads(scan.range_m, wrap, max(0, q0 - 1), min(n_rows, q1 + 1))
+        top = q0 - max(0, q0 - 1)  # the rows of spread above and below this stripe's own
+        nb = np.pad(spread, ((1 - top, 1 - (min(n_rows, q1 + 1) - q1)), (1, 1)),
+                    constant_values=np.nan)  # fmt: skip
+        # nb: this stripe's rows with one row of neighbours (or NaN) above and below
         least = np.fmin(np.fmin(nb[:-2, 1:-1], nb[2:, 1:-1]), np.fmin(nb[1:-1, :-2], nb[1:-1, 2:]))
-        step = (spread > 0.5 * tile_m) & ~(spread <= 3.0 * least)
-        if max_disc is not None:  # such quads are invalid: they allocate nothing
-            step &= spread <= max_disc
+        spread_own, lo_own = spread[top : top + q1 - q0], lo[top : top + q1 - q0]
+        with np.errstate(invalid="ignore"):
+            # a step: across more than half a tile, and three times its least neighbour's
+            # spread (a surface seen at a grazing angle spreads about as much in its neighbours)
+            here = (spread_own > 0.5 * tile_m) & ~(spread_own <= 3.0 * least)
+            if max_disc is not None:  # such quads are invalid: they allocate nothing
+                here &= spread_own <= max_disc
+        step[q0:q1] = here
+        n_step += int(np.count_nonzero(here))
+        lo_sum += float(np.sum(lo_own[here], dtype=np.float64))
     starts = blocks
-    in_block = np.add.reduceat(np.add.reduceat(step, starts[0], axis=0), starts[1], axis=1) > 0
+    in_block = np.logical_or.reduceat(
+        np.logical_or.reduceat(step, starts[0], axis=0), starts[1], axis=1
+    )  # bool throughout: add.reduceat would make an int64 copy of the image
     if not in_block.any():
         return 0.0, in_block
     # the angle between neighbouring pixels, and how many pixels a tile spans at a range
     pitch = float(np.median(np.linalg.norm(np.diff(B_W, axis=1), axis=-1) / du[None, :]))
-    n_step = int(np.count_nonzero(step))
-    typical = float(np.sum(np.where(step, lo, 0.0))) / n_step
+    typical = lo_sum / n_step
     pixels = max(1, int(tile_m / max(typical * pitch, 1e-12)))
-    n = _bins(step, pixels, np.add)
-    has = n > 0
-    longest = _bins(np.where(step, spread, 0.0), pixels, np.maximum)[has]  # the columns' union
-    mean_range = _bins(np.where(step, lo, 0.0), pixels, np.add)[has] / n[has]
-    # rows and columns of the image with steps in each bin: its steps' extent across
-    rows = _bins(_bins(step, (1, pixels), np.add) > 0, (pixels, 1), np.add)[has]
-    cols = _bins(_bins(step, (pixels, 1), np.add) > 0, (1, pixels), np.add)[has]
+    # per bin of pixels x pixels quads, in stripes of whole bins
+    parts: list[list[np.ndarray]] = [[], [], [], [], []]
+    rows_per = pixels * max(1, stripe // pixels)
+    for q0 in range(0, n_rows, rows_per):
+        q1 = min(n_rows, q0 + rows_per)
+        lo, spread = _quads(scan.range_m, wrap, q0, q1)
+        here = step[q0:q1]
+        n = _bins(here, pixels, np.add)
+        has = n > 0
+        parts[0].append(n[has])
+        parts[1].append(_bins(np.where(here, spread, 0.0), pixels, np.maximum)[has])
+        parts[2].append(_bins(np.where(here, lo, 0.0), pixels, np.add)[has])
+        # rows and columns of the image with steps in each bin: its steps' extent across
+        parts[3].append(_bins(_bins(here, (1, pixels), np.add) > 0, (pixels, 1), np.add)[has])
+        parts[4].append(_bins(_bins(here, (pixels, 1), np.add) > 0, (1, pixels), np.add)[has])
+    count, longest, lo_total, rows, cols = (np.concatenate(x) for x in parts)
+    mean_range = lo_total / count
     eps = noise.eps + noise.eps_per_m * mean_range
     falloff = eps if noise.falloff is None else noise.falloff
     length = (longest + 2.0 * eps + falloff + margin) * _boxed_length(B_W) / tile_m + 1.0
     pixel = mean_range * pitch / tile_m
     return float(np.sum(length * (rows * pixel + 1.0) * (cols * pixel + 1.0))), in_block
+
+
+#: Quads read at a time by :func:`_step_tiles` (about 4 MB per float32 array).
+_STRIPE_PIXELS = 1 << 20
+
+
+def _quads(range_m: np.ndarray, wrap: bool, q0: int, q1: int) -> tuple[np.ndarray, np.ndarray]:
+    """The least range and the spread of each pixel quad of rows ``q0`` to ``q1`` (a quad
+    row q spans image rows q and q + 1); no return (+inf) is no surface (NaN)."""
+    r = range_m[q0 : q1 + 1]
+    if wrap:
+        r = np.concatenate([r, r[:, :1]], axis=1)
+    with np.errstate(invalid="ignore"):
+        r = np.where(r < np.inf, r, np.float32(np.nan))
+        a, b, c, d = r[:-1, :-1], r[:-1, 1:], r[1:, :-1], r[1:, 1:]
+        lo = np.minimum(np.minimum(a, b), np.minimum(c, d))
+        spread = np.maximum(np.maximum(a, b), np.maximum(c, d)) - lo
+    return lo, spread
 
 
 def _bins(x: np.ndarray, size: int | tuple[int, int], reduce: np.ufunc) -> np.ndarray:

@@ -11,6 +11,8 @@ nothing is stored for a refused request.
 
 from __future__ import annotations
 
+import logging
+import sqlite3
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -24,16 +26,20 @@ from fastapi.staticfiles import StaticFiles
 from rangefuse.engine import InvalidInputError
 from rangefuse.storage import Store, StoreError
 
+from ._disk import DISK_FULL, is_disk_full
 from .accounts import Accounts, IdempotencyKeyReusedError
 from .api.deps import Services, ThreadStores
 from .api.limits import BodyLimit
 from .api.routes import ROUTERS
+from .commits import UploadCommitter
 from .jobs import JobRunner
 from .queue import JobQueue
 from .settings import Settings
 from .uploads import UploadError
 
 __all__ = ["create_app"]
+
+log = logging.getLogger("rangefuse.service")
 
 
 # --- one handler per kind of error: status code and {"detail": "..."} ---------------------------
@@ -61,6 +67,16 @@ async def _store(request: Request, exc: StoreError) -> JSONResponse:
 
 async def _key_reused(request: Request, exc: IdempotencyKeyReusedError) -> JSONResponse:
     return JSONResponse({"detail": str(exc)}, status_code=422)
+
+
+async def _os_error(request: Request, exc: Exception) -> JSONResponse:
+    """A full disk is 507 (nothing was stored); any other I/O failure is the service's own
+    500, logged with its traceback."""
+    if is_disk_full(exc):
+        log.warning("%s %s: %s (%s)", request.method, request.url.path, DISK_FULL, exc)
+        return JSONResponse({"detail": f"{DISK_FULL} ({exc})"}, status_code=507)
+    log.error("%s %s failed", request.method, request.url.path, exc_info=exc)
+    return JSONResponse({"detail": "internal error (logged by the service)"}, status_code=500)
 
 
 # --- API docs from local copies of Swagger UI and ReDoc (no CDN: they work offline) -----------
@@ -104,12 +120,14 @@ def create_app(settings: Settings) -> FastAPI:
     data_dir = Path(settings.data_dir)
     with Store.open(data_dir, create=True) as store:
         db_path = store.catalog.path  # the service's tables live in the catalog's file
+    accounts = Accounts(db_path, settings.idempotency_ttl_s)
     services = Services(
         settings=settings,
         store=ThreadStores(data_dir),
-        accounts=Accounts(db_path, settings.idempotency_ttl_s),
+        accounts=accounts,
         queue=JobQueue(db_path),
         jobs=JobRunner(data_dir, settings),
+        commits=UploadCommitter(data_dir, accounts),
     )
 
     @asynccontextmanager
@@ -117,8 +135,10 @@ def create_app(settings: Settings) -> FastAPI:
         with Store.open(data_dir) as s:  # uploads never acknowledged before a crash
             for row in s.catalog.scenes():
                 s.cleanup_uploads(row.id)
+        services.commits.start()
         await run_in_threadpool(services.jobs.start)  # starts (or joins) the Dask cluster
         yield
+        await run_in_threadpool(services.commits.stop)  # stores the uploads in flight
         await run_in_threadpool(services.jobs.stop)
 
     app = FastAPI(
@@ -135,6 +155,8 @@ def create_app(settings: Settings) -> FastAPI:
     app.add_exception_handler(UploadError, _upload)  # type: ignore[arg-type]
     app.add_exception_handler(StoreError, _store)  # type: ignore[arg-type]
     app.add_exception_handler(IdempotencyKeyReusedError, _key_reused)  # type: ignore[arg-type]
+    app.add_exception_handler(OSError, _os_error)
+    app.add_exception_handler(sqlite3.Error, _os_error)
     for router in ROUTERS:
         app.include_router(router)
     _add_api_docs(app, app.openapi_url or "/openapi.json")

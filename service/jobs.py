@@ -34,6 +34,7 @@ from rangefuse.storage._files import atomic_write
 from rangefuse.storage.scene import Scene
 from rangefuse.storage.units import Runner
 
+from ._disk import DISK_FULL, is_disk_full
 from .cluster import Cluster, RunInterruptedError, UnitFailedError
 from .queue import JobQueue, JobRow
 from .settings import Settings
@@ -42,7 +43,14 @@ __all__ = ["JobRunner", "new_id", "run_job"]
 
 log = logging.getLogger("rangefuse.jobs")
 
-KINDS = ("integrate", "remove", "reconstruct")
+KINDS = ("integrate", "remove", "reconstruct", "delete")
+
+#: The error of a job stopped by a full disk.
+_JOB_DISK_FULL = (
+    "the store's disk is full: the job stopped (groups of scans it committed before stay "
+    "fused; the others stay stored). Free space, then upload again or ask for a "
+    "reconstruction to carry on"
+)
 
 
 def new_id() -> str:
@@ -167,18 +175,26 @@ class JobRunner:
     def _loop(self) -> None:
         with self._queue() as queue:
             while not self._stop.is_set():
-                with self._lock:
-                    for job_id in [j for j, r in self._running.items() if not r.thread.is_alive()]:
-                        del self._running[job_id]
-                    scenes = [r.scene_id for r in self._running.values() if r.scene_id]
-                while len(scenes) < self.settings.jobs and not self._stop.is_set():
-                    claimed = queue.claim_job(scenes)
-                    if claimed is None:
-                        break
-                    self._begin(claimed)
-                    scenes.append(claimed.scene_id or "")
+                try:
+                    self._claim(queue)
+                except Exception as exc:  # the catalog cannot be written (a full disk): later
+                    log.warning("claiming jobs failed, trying again: %s", exc)
+                    self._stop.wait(max(1.0, self.settings.poll_s))
                 self._wake.wait(self.settings.poll_s)
                 self._wake.clear()
+
+    def _claim(self, queue: JobQueue) -> None:
+        """Start queued jobs while fewer than ``settings.jobs`` run (one per scene)."""
+        with self._lock:
+            for job_id in [j for j, r in self._running.items() if not r.thread.is_alive()]:
+                del self._running[job_id]
+            scenes = [r.scene_id for r in self._running.values() if r.scene_id]
+        while len(scenes) < self.settings.jobs and not self._stop.is_set():
+            claimed = queue.claim_job(scenes)
+            if claimed is None:
+                break
+            self._begin(claimed)
+            scenes.append(claimed.scene_id or "")
 
     def _begin(self, job: JobRow) -> None:
         cancelled = threading.Event()
@@ -194,22 +210,61 @@ class JobRunner:
         assert self.cluster is not None
         runner = self.cluster.runner(lambda: cancelled.is_set() or self._stop.is_set())
         with Store.open(self.data_dir) as store, JobQueue(store.catalog.path) as queue:
+            outcome = self._outcome(store, queue, job, runner, cancelled)
+            self._record(queue, job.id, outcome)
+
+    def _outcome(
+        self,
+        store: Store,
+        queue: JobQueue,
+        job: JobRow,
+        runner: Runner,
+        cancelled: threading.Event,
+    ) -> dict[str, Any]:
+        """Carry out ``job``; returns how it ended, as ``update_job``'s arguments."""
+        try:
+            if job.kind == "delete":
+                return self._delete(store, job)
             if job.scene_id is None or store.catalog.scene(job.scene_id) is None:
-                queue.update_job(job.id, state="failed", error="the scene was deleted")
-                return
+                return {"state": "failed", "error": "the scene was deleted"}
+            result = run_job(store, queue, job, runner, self.settings.cache_mb)
+        except RunInterruptedError:
+            if cancelled.is_set():
+                return {"state": "cancelled"}
+            return {"state": "queued", "progress": 0.0}  # the service stops: runs again later
+        except UnitFailedError as exc:
+            return {"state": "failed", "error": str(exc)}
+        except Exception as exc:  # a job's failure is recorded, never raised
+            if is_disk_full(exc):
+                log.warning("job %s: %s (%s)", job.id, DISK_FULL, exc)
+                return {"state": "failed", "error": _JOB_DISK_FULL}
+            log.exception("job %s failed", job.id)
+            return {"state": "failed", "error": f"{type(exc).__name__}: {exc}"}
+        return {"state": "done", "progress": 1.0, "result": result}
+
+    def _record(self, queue: JobQueue, job_id: str, outcome: dict[str, Any]) -> None:
+        """Record how a job ended; while the catalog cannot be written (a full disk), try
+        again every second, so that the job never stays ``running`` behind a live runner.
+        A service that stops meanwhile leaves it ``running``: the next start queues it."""
+        while True:
             try:
-                result = run_job(store, queue, job, runner, self.settings.cache_mb)
-            except RunInterruptedError:
-                if cancelled.is_set():
-                    queue.update_job(job.id, state="cancelled")
-                else:  # the service stops: the job runs again at the next start
-                    queue.update_job(job.id, state="queued", progress=0.0)
+                queue.update_job(job_id, **outcome)
                 return
-            except UnitFailedError as exc:
-                queue.update_job(job.id, state="failed", error=str(exc))
-                return
-            except Exception as exc:  # a job's failure is recorded, never raised
-                log.exception("job %s failed", job.id)
-                queue.update_job(job.id, state="failed", error=f"{type(exc).__name__}: {exc}")
-                return
-            queue.update_job(job.id, state="done", progress=1.0, result=result)
+            except Exception as exc:
+                log.warning("job %s: recording its end failed, trying again: %s", job_id, exc)
+                if self._stop.wait(1.0):
+                    return
+
+    @staticmethod
+    def _delete(store: Store, job: JobRow) -> dict[str, Any]:
+        """A ``delete`` job: the scene's other jobs were cancelled when it was queued, and
+        it runs once none of them runs (one job per scene); it waits here, never in a
+        request, for a writer of another process to let go."""
+        assert job.scene_id is not None
+        t0 = time.perf_counter()
+        if store.catalog.scene(job.scene_id) is not None:
+            store.delete_scene(job.scene_id, wait=True)
+        with JobQueue(store.catalog.path) as queue:
+            queue.forget_scene(job.scene_id)
+        result = {"scene_id": job.scene_id, "seconds": time.perf_counter() - t0}
+        return {"state": "done", "progress": 1.0, "result": result}

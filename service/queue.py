@@ -135,6 +135,44 @@ class JobQueue:
         )
         return _job_row(rows[0]) if rows else None
 
+    def active_jobs(self, scene_id: str) -> list[JobRow]:
+        """The scene's jobs that are queued, running or cancelling, oldest first."""
+        rows = self._db.rows(
+            f"SELECT {_COLUMNS} FROM jobs WHERE scene_id=? AND state IN "
+            "('queued', 'running', 'cancelling') ORDER BY seq",
+            (scene_id,),
+        )
+        return [_job_row(r) for r in rows]
+
+    def deletion(self, scene_id: str) -> JobRow | None:
+        """The scene's ``delete`` job that has not finished, if any: the scene is going."""
+        return next((j for j in self.active_jobs(scene_id) if j.kind == "delete"), None)
+
+    def deleting_scenes(self) -> set[str]:
+        """Scenes with a ``delete`` job that has not finished."""
+        rows = self._db.rows(
+            "SELECT scene_id FROM jobs WHERE kind='delete' AND state IN "
+            "('queued', 'running', 'cancelling')"
+        )
+        return {str(r[0]) for r in rows}
+
+    def delete_job(self, job_id: str, tenant: str, scene_id: str) -> JobRow:
+        """The scene's unfinished ``delete`` job, or a new one (``job_id``) queued now: one
+        deletion per scene however many requests ask for it."""
+        with self._db.transaction():
+            found = self.deletion(scene_id)
+            if found is not None:
+                return found
+            seq = int(self._db.rows("SELECT COALESCE(MAX(seq), 0) + 1 FROM jobs")[0][0])
+            self._db.run(
+                "INSERT INTO jobs(id, seq, tenant, scene_id, kind, state, progress, payload,"
+                " created_at) VALUES(?,?,?,?,'delete','queued',0,'{}',?)",
+                (job_id, seq, tenant, scene_id, time.time()),
+            )
+        job = self.job(job_id)
+        assert job is not None
+        return job
+
     def claim_job(self, busy_scenes: Sequence[str]) -> JobRow | None:
         """The oldest queued job of a scene with no running job, now marked running."""
         with self._db.transaction():

@@ -21,18 +21,27 @@ import os
 import re
 import secrets
 import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zarr
-import zarr.codecs
+from numcodecs import Zstd
 from rangefuse.engine import InvalidInputError, NoiseModel, Scan, Sensor, sensor_from_dict
 from zarr.storage import LocalStore
 
-from ._files import fsync_path
+from ._files import fsync_path, fsync_paths
 
-__all__ = ["SCANS_GROUP", "ArchiveError", "ScanArchive", "check_scan_id", "scan_checksum"]
+__all__ = [
+    "SCANS_GROUP",
+    "ArchiveError",
+    "ScanArchive",
+    "StagedScan",
+    "check_scan_id",
+    "scan_checksum",
+]
 
 #: Name of the archive group inside a scene's group.
 SCANS_GROUP = "scans"
@@ -98,12 +107,60 @@ def scan_checksum(scan: Scan) -> str:
     return _checksum(scan.range_m, scan.T_W_S, scan.sensor.to_dict(), noise)
 
 
-def _fsync_tree(root: Path) -> None:
-    """fsync every file and folder under ``root`` (folders after their contents)."""
-    for folder, _, files in os.walk(root, topdown=False):
-        for name in files:
-            fsync_path(Path(folder) / name)
-        fsync_path(Path(folder))
+@dataclass(frozen=True)
+class StagedScan:
+    """A scan written to a temporary folder of the archive (:meth:`ScanArchive.stage`)."""
+
+    scan_id: str
+    tmp: Path
+    final: Path
+    checksum: str
+    #: Its files, then its folders (deepest first): what to fsync.
+    paths: list[Path]
+
+
+def _json(value: Any) -> bytes:
+    return json.dumps(value, indent=2).encode()
+
+
+def _range_metadata(shape: tuple[int, ...]) -> dict[str, Any]:
+    """The Zarr v3 metadata of an archived range map: float32, one chunk, NaN fill, little
+    endian bytes then zstd (what ``zarr.create_array`` writes for these options; a test
+    compares the two)."""
+    return {
+        "shape": list(shape),
+        "data_type": "float32",
+        "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": list(shape)}},
+        "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+        "fill_value": "NaN",
+        "codecs": [
+            {"name": "bytes", "configuration": {"endian": "little"}},
+            {"name": "zstd", "configuration": {"level": RANGE_ZSTD_LEVEL, "checksum": False}},
+        ],
+        "attributes": {},
+        "zarr_format": 3,
+        "node_type": "array",
+        "storage_transformers": [],
+    }
+
+
+def _write_entry(root: Path, attrs: dict[str, Any], range_m: np.ndarray) -> list[Path]:
+    """Write an archive entry as a Zarr v3 group at ``root``: its ``zarr.json`` (with
+    ``attrs``), the array ``range`` and its one chunk ``range/c/0/0``. Written directly, not
+    through zarr-python (whose asynchronous store costs about 13 ms a scan); returns the
+    files and folders written, folders deepest first."""
+    data = np.ascontiguousarray(range_m, "<f4")
+    chunk_dir = root / RANGE_ARRAY / "c" / "0"
+    chunk_dir.mkdir(parents=True)
+    files = {
+        root / "zarr.json": _json({"attributes": attrs, "zarr_format": 3, "node_type": "group"}),
+        root / RANGE_ARRAY / "zarr.json": _json(_range_metadata(data.shape)),
+        chunk_dir / "0": Zstd(level=RANGE_ZSTD_LEVEL).encode(data.tobytes()),
+    }
+    for path, content in files.items():
+        with open(path, "wb") as fh:
+            fh.write(content)
+    return [*files, chunk_dir, chunk_dir.parent, root / RANGE_ARRAY, root]
 
 
 class ScanArchive:
@@ -146,6 +203,13 @@ class ScanArchive:
         ArchiveError
             For an unsafe scan id or one that the archive already holds.
         """
+        staged = self.stage(scan_id, scan, name)
+        self.publish([staged])
+        return staged.checksum
+
+    def stage(self, scan_id: str, scan: Scan, name: str | None = None) -> StagedScan:
+        """Write ``scan`` into a temporary folder of the archive, not yet durable nor visible;
+        :meth:`publish` makes it both (several at once: one round of fsyncs)."""
         final = self._scan_path(scan_id)
         if not isinstance(scan, Scan):
             raise ArchiveError(f"scan {scan_id!r}: expected an engine.Scan, got {type(scan)}")
@@ -166,29 +230,41 @@ class ScanArchive:
         }
         tmp = self.path / f"{TMP_PREFIX}{scan_id}-{secrets.token_hex(8)}"
         try:
-            group = zarr.create_group(LocalStore(tmp), zarr_format=3, attributes=attrs)
-            group.create_array(
-                RANGE_ARRAY,
-                data=scan.range_m,
-                chunks=scan.range_m.shape,
-                fill_value=np.float32("nan"),
-                compressors=zarr.codecs.ZstdCodec(level=RANGE_ZSTD_LEVEL),
-                config={"write_empty_chunks": True},  # a chunk of fill value is written too
-            )
-            _fsync_tree(tmp)
-            try:
-                os.rename(tmp, final)  # fails on a non-empty target: never replaces a scan
-            except OSError as exc:
-                if final.exists():
-                    raise ArchiveError(
-                        f"scan {scan_id!r} is already in the archive; scans are immutable"
-                    ) from exc
-                raise
+            paths = _write_entry(tmp, attrs, scan.range_m)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
-        fsync_path(self.path)
-        return checksum
+        return StagedScan(scan_id, tmp, final, checksum, paths)
+
+    def publish(self, staged: Sequence[StagedScan]) -> None:
+        """Make staged scans durable and visible: fsync all their files and folders (side by
+        side), rename each into place, fsync ``scans/``. On an error every staged folder is
+        removed and nothing published stays (the error is raised)."""
+        done: list[StagedScan] = []
+        try:
+            fsync_paths([p for entry in staged for p in entry.paths])
+            for entry in staged:
+                try:
+                    os.rename(entry.tmp, entry.final)  # fails on a non-empty target
+                except OSError as exc:
+                    if entry.final.exists():
+                        raise ArchiveError(
+                            f"scan {entry.scan_id!r} is already in the archive; scans are immutable"
+                        ) from exc
+                    raise
+                done.append(entry)
+            fsync_path(self.path)
+        except BaseException:
+            for entry in staged:
+                shutil.rmtree(entry.tmp, ignore_errors=True)
+            for entry in done:
+                self.delete(entry.scan_id)
+            raise
+
+    def discard(self, staged: Sequence[StagedScan]) -> None:
+        """Remove staged scans that will not be published."""
+        for entry in staged:
+            shutil.rmtree(entry.tmp, ignore_errors=True)
 
     # --- reading -----------------------------------------------------------------------------
     def _attrs(self, scan_id: str) -> dict[str, Any]:
@@ -248,7 +324,8 @@ class ScanArchive:
         try:
             sensor: Sensor = sensor_from_dict(attrs["sensor"])
             noise = None if attrs["noise"] is None else NoiseModel.from_dict(attrs["noise"])
-            return Scan(range_m, pose, sensor, noise)
+            # accepted when it was stored: the range check does not refuse it again
+            return Scan(range_m, pose, sensor, noise, accept_far_ranges=True)
         except (InvalidInputError, TypeError) as exc:
             raise ArchiveError(f"scan {scan_id!r}: archived scan is invalid ({exc})") from exc
 

@@ -154,6 +154,12 @@ class Scene:
         self.recovered = self._recover()
 
     def close(self) -> None:
+        """Release the scene. What an attempt staged and never committed (it failed: a unit
+        that died for good, a full disk, an interruption) is dropped now, while the lock is
+        held, rather than at the next open: it may be what filled the disk."""
+        with contextlib.suppress(Exception):  # never hide why the caller closes: the next
+            if self.catalog.publishing(self.scene_id) is None:  # open recovers anyway
+                self._discard_staging()
         os.close(self._lock_fd)
         if self.owns_store:
             self.store.close()

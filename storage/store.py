@@ -7,10 +7,13 @@ the holder of the scene's writer lock (:meth:`Store.open_scene`, :func:`open_sto
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import os
 import shutil
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +21,7 @@ from rangefuse.engine import FusionParams, GridSpec, Scan
 from rangefuse.engine.classify import bounding_sphere
 
 from ._files import fsync_path
-from .archive import ScanArchive
+from .archive import ScanArchive, StagedScan
 from .catalog import Catalog, ScanRow
 from .zarr_tiles import ZarrTiles
 
@@ -150,9 +153,10 @@ class Store:
             raise StoreError(f"{self.path}: holds no scene {scene_id!r}")
         return GridSpec.from_dict(row.grid), FusionParams.from_dict(row.params)
 
-    def delete_scene(self, scene_id: str) -> None:
-        """Remove a scene and its files (waits for no writer: takes its lock)."""
-        lock_fd = _lock_scene(self.scene_path(scene_id), wait=True)
+    def delete_scene(self, scene_id: str, wait: bool = True) -> None:
+        """Remove a scene and its files: takes its writer lock, waiting for it with ``wait``
+        (otherwise :class:`StoreLockedError` while a writer holds it)."""
+        lock_fd = _lock_scene(self.scene_path(scene_id), wait=wait)
         try:
             self.catalog.delete_scene(scene_id)
             shutil.rmtree(self.scene_path(scene_id) / "scene.zarr", ignore_errors=True)
@@ -167,20 +171,65 @@ class Store:
 
         Needs no writer lock: archive entries are written once under their own name.
         """
-        _, params = self.scene_spec(scene_id)
-        if self.catalog.scan(scene_id, scan_id) is not None:
-            raise SceneConflictError(f"scan {scan_id!r} is already in the scene")
-        origin, radius = bounding_sphere(scan, params)  # NumPy only: no kernel in a request
-        archive = ScanArchive(self.scene_path(scene_id) / "scene.zarr")
-        checksum = archive.put(scan_id, scan, name)
+        (result,) = self.store_scans([(scene_id, scan_id, scan, name)])
+        if isinstance(result, BaseException):
+            raise result
+        return result
+
+    def store_scans(self, items: Sequence[NewScan]) -> list[ScanRow | Exception]:
+        """Store scans that arrived together, ``(scene_id, scan_id, scan, name)`` each, with
+        one round of fsyncs and one catalog transaction (a group commit): each is staged in
+        its scene's archive (side by side, in threads), all staged entries are published at
+        once, then all catalog rows are written in one transaction. Returns, in order, each
+        scan's row or the error that refused it (a bad scan fails alone); an error of the
+        shared steps (a full disk) fails every scan of the batch, and nothing of it stays.
+        """
+        results: list[ScanRow | Exception | None] = [None] * len(items)
+        spheres: dict[int, tuple[list[float], float]] = {}
+        for i, (scene_id, scan_id, scan, _) in enumerate(items):
+            try:  # the catalog is read in this thread only (its connection is this thread's)
+                _, params = self.scene_spec(scene_id)
+                if self.catalog.scan(scene_id, scan_id) is not None:
+                    raise SceneConflictError(f"scan {scan_id!r} is already in the scene")
+                origin, radius = bounding_sphere(scan, params)  # NumPy only: no kernel here
+                spheres[i] = (origin.tolist(), float(radius))
+            except Exception as exc:
+                results[i] = exc
+        todo = sorted(spheres)
+        with ThreadPoolExecutor(min(4, max(1, len(todo)))) as pool:
+            staged = dict(zip(todo, pool.map(lambda i: self._stage(items[i]), todo), strict=True))
+        for i, one in staged.items():
+            if isinstance(one, Exception):
+                results[i] = one
+        entries = {i: one for i, one in staged.items() if isinstance(one, StagedScan)}
         try:
-            self.catalog.add_scan(scene_id, scan_id, name, origin.tolist(), radius, checksum)
-        except BaseException:
-            archive.delete(scan_id)
-            raise
-        row = self.catalog.scan(scene_id, scan_id)
-        assert row is not None
-        return row
+            for archive, group in _by_archive(list(entries.values())):
+                archive.publish(group)
+            with self.catalog.transaction():
+                for i, entry in entries.items():
+                    scene_id, scan_id, _, name = items[i]
+                    self.catalog.add_scan(scene_id, scan_id, name, *spheres[i], entry.checksum)
+        except Exception as exc:
+            for i, entry in entries.items():
+                shutil.rmtree(entry.tmp, ignore_errors=True)
+                with contextlib.suppress(Exception):
+                    self._archive(items[i][0]).delete(entry.scan_id)
+                results[i] = exc
+            return [r if r is not None else Exception("not stored") for r in results]
+        for i in entries:
+            results[i] = self.catalog.scan(items[i][0], items[i][1])
+        return [r if r is not None else Exception("not stored") for r in results]
+
+    def _archive(self, scene_id: str) -> ScanArchive:
+        return ScanArchive(self.scene_path(scene_id) / "scene.zarr")
+
+    def _stage(self, item: NewScan) -> StagedScan | Exception:
+        """Stage one scan in its scene's archive (or the error that refused it)."""
+        scene_id, scan_id, scan, name = item
+        try:
+            return self._archive(scene_id).stage(scan_id, scan, name)
+        except Exception as exc:
+            return exc
 
     def cleanup_uploads(self, scene_id: str) -> dict[str, int]:
         """Delete archive entries that were never acknowledged (a kill between the archive
@@ -249,3 +298,16 @@ def check_same(path: Path, what: str, stored: dict[str, Any], given: Any) -> Non
             f"{path}: the scene was created with other {what} ({details}); use the store's "
             "parameters or a new store"
         )
+
+
+#: A scan to store: ``(scene_id, scan_id, scan, name)``.
+NewScan = tuple[str, str, Scan, "str | None"]
+
+
+def _by_archive(entries: list[StagedScan]) -> Iterator[tuple[ScanArchive, list[StagedScan]]]:
+    """Staged entries grouped by the archive (scene) they belong to."""
+    groups: dict[Path, list[StagedScan]] = {}
+    for entry in entries:
+        groups.setdefault(entry.final.parent, []).append(entry)
+    for scans_dir, group in groups.items():
+        yield ScanArchive(scans_dir.parent), group

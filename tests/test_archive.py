@@ -162,3 +162,44 @@ def test_failed_rename_leaves_nothing(tmp_path: Path, monkeypatch: pytest.Monkey
         archive.put("s", _scan("orthographic"))
     assert archive.ids() == []
     assert [p.name for p in archive.path.iterdir()] == ["zarr.json"]
+
+
+def test_entries_are_what_zarr_python_writes(tmp_path: Path) -> None:
+    """The archive writes its entries without zarr-python; the metadata is the same as
+    zarr-python writes for the same array, and the chunk the same bytes."""
+    scan = _scan("pinhole_z")
+    ScanArchive(tmp_path / "scene.zarr").put("a", scan)
+    ours = tmp_path / "scene.zarr" / "scans" / "a" / "range"
+    group = zarr.create_group(LocalStore(tmp_path / "theirs"), zarr_format=3)
+    group.create_array(
+        "range",
+        data=scan.range_m,
+        chunks=scan.range_m.shape,
+        fill_value=np.float32("nan"),
+        compressors=zarr.codecs.ZstdCodec(level=archive_module.RANGE_ZSTD_LEVEL),
+        config={"write_empty_chunks": True},
+    )
+    theirs = tmp_path / "theirs" / "range"
+    assert json.loads((ours / "zarr.json").read_text()) == json.loads(
+        (theirs / "zarr.json").read_text()
+    )
+    assert (ours / "c" / "0" / "0").read_bytes() == (theirs / "c" / "0" / "0").read_bytes()
+
+
+def test_publishing_several_staged_scans_at_once(tmp_path: Path) -> None:
+    archive = ScanArchive(tmp_path / "scene.zarr")
+    scans = {f"s{i}": _scan("pinhole_z", seed=i) for i in range(5)}
+    staged = [archive.stage(k, v) for k, v in scans.items()]
+    assert archive.ids() == []  # staged: not visible yet
+    archive.publish(staged)
+    assert archive.ids() == sorted(scans)
+    for k, v in scans.items():
+        assert archive.get(k).range_m.tobytes() == v.range_m.tobytes()
+    # a batch with one id already archived publishes nothing of its own
+    again = [archive.stage("t0", scans["s0"]), archive.stage("t1", scans["s1"])]
+    (tmp_path / "scene.zarr" / "scans" / "t1").mkdir()
+    (tmp_path / "scene.zarr" / "scans" / "t1" / "x").write_text("taken")
+    with pytest.raises(ArchiveError, match="already in the archive"):
+        archive.publish(again)
+    assert "t0" not in archive.ids()
+    assert not [p for p in (tmp_path / "scene.zarr" / "scans").iterdir() if p.name.startswith(".")]

@@ -249,7 +249,7 @@ def _alive(pids: list[int]) -> list[int]:
 
 
 def _busy_server(tmp_path: Path) -> tuple[Server, str, list[int]]:
-    """A server with a long integration job running; its worker processes."""
+    """A server with a long job running (a reconstruction); its worker processes."""
     data = make_dataset("room", views=30)
     server = Server(tmp_path / "data").start()
     server.token = server.read_token()
@@ -257,7 +257,6 @@ def _busy_server(tmp_path: Path) -> tuple[Server, str, list[int]]:
     scene = httpx.post(f"{server.url}/v1/scenes", headers=headers,
                        json={"name": "busy", "voxel_size": 0.02}).json()  # fmt: skip
     sensor = data.sensor.to_dict()
-    job_id = ""
     for _, scan in data.scans:
         buf = io.BytesIO()
         np.save(buf, scan.range_m)
@@ -267,12 +266,15 @@ def _busy_server(tmp_path: Path) -> tuple[Server, str, list[int]]:
             headers=headers,
             files={"range": ("r.npy", buf.getvalue()), "meta": (None, meta)},
         )
-        job_id = answer.json()["job"]["id"]  # fmt: skip
+        assert answer.status_code == 202, answer.text
+    # a reconstruction: fuses what is pending, then meshes the whole room (several seconds)
+    job_id = httpx.post(f"{server.url}/v1/scenes/{scene['id']}/reconstructions",
+                        headers=headers).json()["job"]["id"]  # fmt: skip
     deadline = time.time() + 120
     while httpx.get(f"{server.url}/v1/jobs/{job_id}", headers=headers).json()["state"] != "running":
         assert time.time() < deadline
         time.sleep(0.1)
-    time.sleep(1.0)
+    time.sleep(0.5)
     assert server.proc is not None
     workers = _descendants(server.proc.pid)
     assert len(workers) >= 2, workers  # the LocalCluster's worker processes

@@ -177,10 +177,12 @@ def test_staged_tiles_without_a_checkpoint_are_discarded_at_the_next_open(tmp_pa
         _fill(scene, room.scans[:4])
         scene.store_scan(*room.scans[4])  # acknowledged, not fused yet
         keys = scene.tile_keys()[:5]
-        T = grid.tile_size
-        dead = Staging(scene.staging_root / "an-attempt-that-died", scene.tiles)
-        dead.write(keys, np.full((len(keys), T, T, T), 12345, np.int64))
-        scene.archive.put("ghost", room.scans[5][1])  # archived, never acknowledged
+        staging_root, tiles, archive = scene.staging_root, scene.tiles, scene.archive
+    # what a process killed mid-group leaves (a scene closed normally drops its staging)
+    T = grid.tile_size
+    dead = Staging(staging_root / "an-attempt-that-died", tiles)
+    dead.write(keys, np.full((len(keys), T, T, T), 12345, np.int64))
+    archive.put("ghost", room.scans[5][1])  # archived, never acknowledged
     with open_store(tmp_path / "s") as scene:
         assert scene.recovered["discarded"] == 5 and scene.recovered["published"] == 0
         assert scene.recovered["orphan_scans"] == 1

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
@@ -25,21 +25,23 @@ from rangefuse.storage import Store
 from rangefuse.storage.catalog import SceneRow
 
 from ..accounts import Accounts, Caller
+from ..commits import UploadCommitter
 from ..jobs import JobRunner
 from ..queue import JobQueue
 from ..settings import Settings
 
 __all__ = [
     "AccountsDep",
+    "CommitsDep",
     "CurrentAdmin",
     "CurrentTenant",
     "JobsDep",
+    "OwnedScene",
     "QueueDep",
     "Services",
     "SettingsDep",
     "StoreDep",
     "TenantScene",
-    "UploadLockDep",
 ]
 
 StoreOpener = Callable[[], Store]
@@ -69,8 +71,8 @@ class Services:
     accounts: Accounts
     queue: JobQueue
     jobs: JobRunner
-    #: Uploads with an idempotency key are stored one at a time (a retry waits for the first).
-    upload_lock: threading.Lock = field(default_factory=threading.Lock)
+    #: Stores uploads in batches (group commit), checking their idempotency keys.
+    commits: UploadCommitter
 
 
 def _services(request: Request) -> Services:
@@ -98,8 +100,8 @@ def get_jobs(request: Request) -> JobRunner:
     return _services(request).jobs
 
 
-def get_upload_lock(request: Request) -> threading.Lock:
-    return _services(request).upload_lock
+def get_commits(request: Request) -> UploadCommitter:
+    return _services(request).commits
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
@@ -107,7 +109,7 @@ StoreDep = Annotated[StoreOpener, Depends(get_store)]
 AccountsDep = Annotated[Accounts, Depends(get_accounts)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
 JobsDep = Annotated[JobRunner, Depends(get_jobs)]
-UploadLockDep = Annotated[threading.Lock, Depends(get_upload_lock)]
+CommitsDep = Annotated[UploadCommitter, Depends(get_commits)]
 
 
 def _caller(accounts: Accounts, authorization: str | None) -> Caller:
@@ -154,13 +156,24 @@ CurrentTenant = Annotated[str, Depends(current_tenant)]
 CurrentAdmin = Annotated[str, Depends(current_admin)]
 
 
-def tenant_scene(scene_id: str, who: CurrentTenant, store: StoreDep) -> SceneRow:
+def owned_scene(scene_id: str, who: CurrentTenant, store: StoreDep) -> SceneRow:
     """The scene ``scene_id`` of the path; 404 when it does not exist or is another tenant's
     (the two look the same)."""
     row = store().catalog.scene(scene_id)
     if row is None or row.tenant != who:
         raise HTTPException(404, f"no scene {scene_id!r}")
     return row
+
+
+OwnedScene = Annotated[SceneRow, Depends(owned_scene)]
+
+
+def tenant_scene(scene: OwnedScene, queue: QueueDep) -> SceneRow:
+    """The caller's scene, unless it is being deleted (409 naming the deletion's job)."""
+    deletion = queue.deletion(scene.id)
+    if deletion is not None:
+        raise HTTPException(409, f"scene {scene.id!r} is being deleted (job {deletion.id})")
+    return scene
 
 
 TenantScene = Annotated[SceneRow, Depends(tenant_scene)]

@@ -221,7 +221,7 @@ class JobOut(BaseModel):
     """A job (``error``, ``finished_at`` and ``result`` only once there is one)."""
 
     id: str
-    kind: str = Field(description="integrate, remove or reconstruct")
+    kind: str = Field(description="integrate, remove, reconstruct or delete (a scene)")
     scene_id: str | None
     state: str = Field(
         description="queued, running, cancelling (a running job asked to stop), done, failed "
@@ -240,13 +240,17 @@ class JobOut(BaseModel):
 
 
 _PROBLEMS = {
-    400: "a malformed upload (the message names the part and the problem)",
+    400: "a malformed request body: an upload's part, or JSON that cannot be parsed (the "
+    "message names the part and the problem)",
     401: "no valid bearer token",
+    403: "a token of the wrong role (an admin token on a tenant's route)",
     404: "no such id (another tenant's ids look the same)",
-    409: "the store refused (a conflict), no reconstruction yet, or a job already finished",
+    409: "the store refused (a conflict), the scene is being deleted, no reconstruction yet, "
+    "or a job already finished",
     503: "no worker can run jobs",
     413: "a request body over RANGEFUSE_MAX_UPLOAD_MB",
     422: "an invalid value (the message names the field and the problem)",
+    507: "the store's disk is full (nothing was stored; retry once space is freed)",
 }
 
 

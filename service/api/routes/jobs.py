@@ -11,7 +11,7 @@ from ..models import JobOut, problems
 
 __all__ = ["router"]
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=problems(401, 422))
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=problems(401, 403, 422, 507))
 
 
 @router.get("", response_model=list[JobOut], response_model_exclude_unset=True)
@@ -48,6 +48,8 @@ def cancel_job(job_id: str, who: CurrentTenant, queue: QueueDep, jobs: JobsDep) 
         raise HTTPException(404, f"no job {job_id!r}")
     if job.state in ("done", "failed", "cancelled"):
         raise HTTPException(409, f"job {job_id!r} already finished: {job.state}")
+    if job.kind == "delete":
+        raise HTTPException(409, f"job {job_id!r} deletes a scene; a deletion cannot be cancelled")
     cancelled = jobs.cancel(job_id, queue)
     assert cancelled is not None
     return JobOut.from_row(cancelled)

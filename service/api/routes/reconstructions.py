@@ -19,14 +19,16 @@ from ..models import Accepted, ReconstructionIn, problems
 __all__ = ["router"]
 
 router = APIRouter(
-    prefix="/v1/scenes/{scene_id}", tags=["reconstructions"], responses=problems(401, 404, 422)
+    prefix="/v1/scenes/{scene_id}",
+    tags=["reconstructions"],
+    responses=problems(401, 403, 404, 409, 422, 507),
 )
 
 _MEDIA = {"ply": "application/octet-stream", "obj": "text/plain", "glb": "model/gltf-binary",
           "stl": "model/stl"}  # fmt: skip
 
 
-@router.post("/reconstructions", status_code=202, response_model=Accepted)
+@router.post("/reconstructions", status_code=202, response_model=Accepted, responses=problems(400))
 def reconstruct(
     scene: TenantScene,
     who: CurrentTenant,

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import threading
+import asyncio
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, HTTPException, Request
@@ -10,21 +10,18 @@ from fastapi.concurrency import run_in_threadpool
 from rangefuse.engine.params import params_of
 from starlette.requests import ClientDisconnect
 
-from ...accounts import Accounts, upload_digest
+from ...accounts import upload_digest
 from ...budgets import check_upload
 from ...jobs import new_id
-from ...queue import JobQueue
-from ...uploads import UploadedScan, decode_scan
+from ...uploads import decode_scan
 from ..deps import (
-    AccountsDep,
+    CommitsDep,
     CurrentTenant,
     JobsDep,
     QueueDep,
     SettingsDep,
     StoreDep,
-    StoreOpener,
     TenantScene,
-    UploadLockDep,
 )
 from ..limits import BodyTooLargeError
 from ..models import Accepted, ScanOut, Upload, problems
@@ -32,7 +29,9 @@ from ..models import Accepted, ScanOut, Upload, problems
 __all__ = ["router"]
 
 router = APIRouter(
-    prefix="/v1/scenes/{scene_id}/scans", tags=["scans"], responses=problems(401, 404, 422)
+    prefix="/v1/scenes/{scene_id}/scans",
+    tags=["scans"],
+    responses=problems(401, 403, 404, 409, 422, 507),
 )
 
 _NOISE = ", ".join(p.name for p in params_of("noise"))
@@ -91,35 +90,6 @@ async def _read_parts(request: Request, max_upload_mb: float) -> dict[str, bytes
     return parts
 
 
-def _store_upload(
-    store: StoreOpener,
-    accounts: Accounts,
-    queue: JobQueue,
-    lock: threading.Lock,
-    scene_id: str,
-    who: str,
-    key: str | None,
-    body_sha256: str | None,
-    uploaded: UploadedScan,
-) -> dict[str, Any]:
-    """Archive the scan and queue it; a key seen before answers what it answered then (422
-    when it came with another scan or scene: IdempotencyKeyReusedError)."""
-    with lock:  # idempotency: one retry at a time
-        if key is not None and body_sha256 is not None:
-            seen = accounts.recorded_response(who, key, scene_id, body_sha256)
-            if seen is not None:
-                return seen
-        row = store().store_scan(scene_id, new_id(), uploaded.scan, uploaded.name)
-        job = queue.queued_job(scene_id, "integrate")
-        if job is None:
-            job = queue.create_job(new_id(), who, scene_id, "integrate", {})
-        response = {"scan": {"id": row.id, "name": row.name, "state": row.state},
-                    "job": {"id": job.id}}  # fmt: skip
-        if key is not None:
-            accounts.remember_response(who, key, response, scene_id, body_sha256)
-        return response
-
-
 @router.post(
     "",
     status_code=202,
@@ -132,11 +102,9 @@ async def upload_scan(
     request: Request,
     who: CurrentTenant,
     store: StoreDep,
-    accounts: AccountsDep,
-    queue: QueueDep,
     jobs: JobsDep,
     settings: SettingsDep,
-    lock: UploadLockDep,
+    commits: CommitsDep,
     idempotency_key: Annotated[str | None, Header()] = None,
 ) -> dict[str, Any]:
     """Upload a scan; 202 once it is archived on disk, with the job that fuses it (new
@@ -153,10 +121,8 @@ async def upload_scan(
     digest = None
     if idempotency_key is not None:
         digest = await run_in_threadpool(upload_digest, parts["range"], parts["meta"])
-    response = await run_in_threadpool(
-        _store_upload, store, accounts, queue, lock, scene.id, who, idempotency_key, digest,
-        uploaded,
-    )  # fmt: skip
+    future = commits.submit(scene.id, who, idempotency_key, digest, uploaded)
+    response = await asyncio.wrap_future(future)  # stored with the uploads beside it
     jobs.wake()
     return response
 

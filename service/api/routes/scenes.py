@@ -3,17 +3,27 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Response
+from fastapi.responses import JSONResponse
 from rangefuse.engine import FusionParams, GridSpec, NoiseModel
 from rangefuse.engine.params import default_eps
+from rangefuse.storage import StoreLockedError
 
 from ...budgets import check_new_scene
 from ...jobs import new_id
-from ..deps import CurrentTenant, QueueDep, SettingsDep, StoreDep, TenantScene
-from ..models import NoiseIn, SceneDetail, SceneIn, SceneOut, problems
+from ..deps import (
+    CurrentTenant,
+    JobsDep,
+    OwnedScene,
+    QueueDep,
+    SettingsDep,
+    StoreDep,
+    TenantScene,
+)
+from ..models import Accepted, NoiseIn, SceneDetail, SceneIn, SceneOut, problems
 
 __all__ = ["router"]
 
-router = APIRouter(prefix="/v1/scenes", tags=["scenes"], responses=problems(401, 422))
+router = APIRouter(prefix="/v1/scenes", tags=["scenes"], responses=problems(401, 403, 422, 507))
 
 
 def _scene_spec(body: SceneIn) -> tuple[GridSpec, FusionParams]:
@@ -36,7 +46,7 @@ def _scene_spec(body: SceneIn) -> tuple[GridSpec, FusionParams]:
     return grid, params
 
 
-@router.post("", status_code=201, response_model=SceneOut)
+@router.post("", status_code=201, response_model=SceneOut, responses=problems(400))
 def create_scene(
     body: SceneIn, who: CurrentTenant, store: StoreDep, settings: SettingsDep
 ) -> SceneOut:
@@ -52,12 +62,13 @@ def create_scene(
 
 
 @router.get("", response_model=list[SceneOut])
-def list_scenes(who: CurrentTenant, store: StoreDep) -> list[SceneOut]:
-    """The tenant's scenes, oldest first."""
-    return [SceneOut.from_row(r) for r in store().catalog.scenes(tenant=who)]
+def list_scenes(who: CurrentTenant, store: StoreDep, queue: QueueDep) -> list[SceneOut]:
+    """The tenant's scenes, oldest first (not those being deleted)."""
+    going = queue.deleting_scenes()
+    return [SceneOut.from_row(r) for r in store().catalog.scenes(tenant=who) if r.id not in going]
 
 
-@router.get("/{scene_id}", response_model=SceneDetail, responses=problems(404))
+@router.get("/{scene_id}", response_model=SceneDetail, responses=problems(404, 409))
 def get_scene(scene: TenantScene, store: StoreDep) -> SceneDetail:
     """One scene, with the number of its scans and tiles."""
     out = SceneOut.from_row(scene)
@@ -68,9 +79,31 @@ def get_scene(scene: TenantScene, store: StoreDep) -> SceneDetail:
     )
 
 
-@router.delete("/{scene_id}", status_code=204, response_class=Response, responses=problems(404))
-def delete_scene(scene: TenantScene, store: StoreDep, queue: QueueDep) -> Response:
-    """The scene, its scans, tiles and meshes (waits for a running job of the scene)."""
-    store().delete_scene(scene.id)
-    queue.forget_scene(scene.id)
-    return Response(status_code=204)
+@router.delete(
+    "/{scene_id}",
+    status_code=204,
+    response_class=Response,
+    responses={202: {"model": Accepted}, **problems(404)},
+)
+def delete_scene(
+    scene: OwnedScene, who: CurrentTenant, store: StoreDep, queue: QueueDep, jobs: JobsDep
+) -> Response:
+    """Delete the scene, its scans, tiles and meshes: 204 when done at once; 202 with a
+    ``delete`` job when a job of the scene runs (it is cancelled, and the deletion follows
+    it). Never waits: while the deletion is pending the scene answers 409, and asking again
+    answers the same job."""
+    if queue.deletion(scene.id) is None:
+        for job in queue.active_jobs(scene.id):
+            jobs.cancel(job.id, queue)
+        if not queue.active_jobs(scene.id):
+            try:
+                store().delete_scene(scene.id, wait=False)
+            except StoreLockedError:
+                pass  # a writer of another process: the job waits for it, not the request
+            else:
+                queue.forget_scene(scene.id)
+                return Response(status_code=204)
+    job = queue.delete_job(new_id(), who, scene.id)
+    jobs.wake()
+    body = Accepted.model_validate({"job": {"id": job.id}})
+    return JSONResponse(body.model_dump(), status_code=202)

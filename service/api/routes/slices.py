@@ -19,7 +19,7 @@ from ..models import problems
 __all__ = ["router"]
 
 router = APIRouter(
-    prefix="/v1/scenes/{scene_id}", tags=["slices"], responses=problems(401, 404, 422)
+    prefix="/v1/scenes/{scene_id}", tags=["slices"], responses=problems(401, 403, 404, 409, 422)
 )
 
 
