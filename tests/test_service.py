@@ -375,6 +375,34 @@ def test_oversized_and_short_bodies(server, client, object_data):
     assert _n_scans(client, sid) == 0
 
 
+def test_malformed_multipart_bodies(client, object_data):
+    """The body is parsed as it streams in (not by Starlette's form parser): every malformed
+    one is a 400 naming the problem, and nothing is stored."""
+    sid = client.post("/v1/scenes", json=_scene_body(object_data)).json()["id"]
+    url = f"/v1/scenes/{sid}/scans"
+
+    def part(name: str, body: bytes = b"x") -> bytes:
+        return (f'--b\r\nContent-Disposition: form-data; name="{name}"\r\n\r\n'.encode()
+                + body + b"\r\n")  # fmt: skip
+
+    cases = {
+        "no boundary": ("multipart/form-data", part("range") + b"--b--\r\n", "multipart"),
+        "not multipart": ("application/json", b"{}", "multipart/form-data"),
+        "garbage": ("multipart/form-data; boundary=b", b"\x00garbage\r\n--", "malformed"),
+        "five parts": (
+            "multipart/form-data; boundary=b",
+            b"".join(part(f"p{i}") for i in range(5)) + b"--b--\r\n",
+            "more than 4 parts",
+        ),
+        "no meta": ("multipart/form-data; boundary=b", part("range") + b"--b--\r\n", "meta"),
+    }
+    for what, (ctype, body, message) in cases.items():
+        r = client.post(url, content=body, headers={"content-type": ctype})
+        assert r.status_code == 400, (what, r.text)
+        assert message in r.json()["detail"], (what, r.text)
+    assert _n_scans(client, sid) == 0
+
+
 def test_tokens_and_tenants(server, client, object_data):
     assert httpx.get(f"{server.url}/v1/scenes").status_code == 401
     bad = httpx.get(f"{server.url}/v1/scenes", headers={"Authorization": "Bearer nope"})

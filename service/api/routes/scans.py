@@ -7,6 +7,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, HTTPException, Request
 from fastapi.concurrency import run_in_threadpool
+from python_multipart.multipart import MultipartParser, parse_options_header
 from rangefuse.engine.params import params_of
 from starlette.requests import ClientDisconnect
 
@@ -63,30 +64,85 @@ _MULTIPART = {
 }
 
 
+#: Most parts a scan upload may have (``range``, ``meta``, and two more that are ignored).
+_MAX_PARTS = 4
+
+
+class _Parts:
+    """The parts of a multipart body, kept in memory (the body limit bounds them), fed by
+    python-multipart's parser. Starlette's form parser spools each file over 1 MB to a
+    temporary file, one thread hop per chunk: most of an upload's time in the event loop."""
+
+    def __init__(self) -> None:
+        self.parts: dict[str, bytearray] = {}
+        self._header = b""
+        self._value = b""
+        self._headers: dict[bytes, bytes] = {}
+        self._current: bytearray | None = None
+
+    def callbacks(self) -> dict[str, Any]:
+        return {
+            "on_part_begin": self._begin,
+            "on_header_field": self._field,
+            "on_header_value": self._header_value,
+            "on_header_end": self._header_end,
+            "on_headers_finished": self._headers_finished,
+            "on_part_data": self._data,
+        }
+
+    def _begin(self) -> None:
+        self._headers = {}
+        self._current = None
+
+    def _field(self, data: bytes, start: int, end: int) -> None:
+        self._header += data[start:end]
+
+    def _header_value(self, data: bytes, start: int, end: int) -> None:
+        self._value += data[start:end]
+
+    def _header_end(self) -> None:
+        self._headers[self._header.lower()] = self._value
+        self._header, self._value = b"", b""
+
+    def _headers_finished(self) -> None:
+        if len(self.parts) >= _MAX_PARTS:
+            raise HTTPException(400, f"body: more than {_MAX_PARTS} parts")
+        _, options = parse_options_header(self._headers.get(b"content-disposition", b""))
+        name = options.get(b"name", b"").decode("utf-8", "replace")
+        self._current = self.parts.setdefault(name, bytearray())
+
+    def _data(self, data: bytes, start: int, end: int) -> None:
+        if self._current is not None:
+            self._current += data[start:end]
+
+
 async def _read_parts(request: Request, max_upload_mb: float) -> dict[str, bytes]:
     """The ``range`` and ``meta`` parts of a multipart body (400 or 413 otherwise)."""
-    ctype = request.headers.get("content-type", "")
-    if not ctype.startswith("multipart/form-data"):
+    ctype, options = parse_options_header(request.headers.get("content-type", ""))
+    boundary = options.get(b"boundary")
+    if ctype != b"multipart/form-data" or not boundary:
         raise HTTPException(400, "body: must be multipart/form-data with parts 'range' and 'meta'")
+    found = _Parts()
     try:
-        form = await request.form(max_files=2, max_fields=4)
+        parser = MultipartParser(boundary, found.callbacks())  # type: ignore[arg-type]
+        async for chunk in request.stream():
+            parser.write(chunk)
+        parser.finalize()
     except ClientDisconnect:
         raise HTTPException(400, "body: the client stopped before sending it all") from None
     except BodyTooLargeError:
         raise HTTPException(
             413, f"request body is over the limit of {max_upload_mb:g} MB"
         ) from None
+    except HTTPException:
+        raise
     except Exception as exc:  # malformed multipart (the parser's own errors)
         raise HTTPException(400, f"body: malformed multipart ({exc})") from None
-    try:
-        parts = {}
-        for field in ("range", "meta"):
-            item = form.get(field)
-            if item is None:
-                raise HTTPException(400, f"{field}: missing part")
-            parts[field] = item.encode() if isinstance(item, str) else await item.read()
-    finally:
-        await form.close()
+    parts: dict[str, bytes] = {}
+    for field in ("range", "meta"):
+        if field not in found.parts:
+            raise HTTPException(400, f"{field}: missing part")
+        parts[field] = bytes(found.parts.pop(field))
     return parts
 
 
