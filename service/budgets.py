@@ -86,7 +86,7 @@ def check_upload(
         estimate = estimate_scan(scan, params, grid)
         check_scan("scan", estimate, grid, limits)
         catalog = store().catalog
-        pending = len(catalog.scans(scene.id, ("stored",)))
+        pending = catalog.n_scans(scene.id, ("stored",))  # a count: uploads stay O(1)
         with _accepted_lock:
             recent = list(_accepted.get(scene.id, ()))[-pending:] if pending else []
         waiting = sum(recent) + (pending - len(recent)) * estimate.tiles

@@ -233,6 +233,15 @@ class Catalog:
         out = [self._scan_row(r) for r in rows]
         return out if states is None else [s for s in out if s.state in states]
 
+    def n_scans(self, scene_id: str, states: Sequence[str]) -> int:
+        """How many of the scene's scans are in ``states`` (a count, no rows read out)."""
+        marks = ",".join("?" * len(states))
+        row = self._db.execute(
+            f"SELECT COUNT(*) FROM scans WHERE scene_id=? AND state IN ({marks})",
+            (scene_id, *states),
+        ).fetchone()
+        return int(row[0])
+
     def set_scan_state(self, scene_id: str, scan_ids: Sequence[str], state: str) -> None:
         if state not in SCAN_STATES:
             raise ValueError(f"unknown scan state {state!r}")

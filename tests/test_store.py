@@ -113,7 +113,12 @@ def test_adding_later_equals_all_at_once(tmp_path, room):
     with open_store(tmp_path / "s", grid, PARAMS) as scene:
         for item in rest:  # one scan per group
             scene.store_scan(*item)
+            assert scene.catalog.n_scans(scene.scene_id, ("stored",)) == 1
+            assert scene.catalog.n_scans(scene.scene_id, ("stored", "fused")) == len(
+                scene.scan_rows()
+            )
             scene.integrate_pending(group_scans=1)
+        assert scene.catalog.n_scans(scene.scene_id, ("stored",)) == 0
         _same_dense(scene.to_dense(), expected)
 
 
