@@ -157,8 +157,9 @@ class UploadCommitter:
                         new_id(), upload.tenant, upload.scene_id, "integrate", {}
                     )
                 jobs[upload.scene_id] = job.id
-            response = {"scan": {"id": row.id, "name": row.name, "state": row.state},
-                        "job": {"id": jobs[upload.scene_id]}}  # fmt: skip
+            scan = {"id": row.id, "name": row.name, "state": row.state,
+                    "far_ranges": upload.uploaded.scan.far_ranges}  # fmt: skip
+            response = {"scan": scan, "job": {"id": jobs[upload.scene_id]}}
             if upload.key is not None:
                 self.accounts.remember_response(
                     upload.tenant, upload.key, response, upload.scene_id, upload.digest

@@ -240,6 +240,7 @@ def test_service_refuses_far_ranges_with_422_and_accepts_them_when_asked(server)
             files={"range": ("r", data), "meta": (None, _meta(accept_far_ranges=True))},
         )
         assert r.status_code == 202, r.text
+        assert r.json()["scan"]["far_ranges"] == 1833  # 60 % of 3,055, now invalid
         assert len(client.get(f"/v1/scenes/{sid}/scans").json()) == 1
         openapi = client.get("/openapi.json").json()
         body = openapi["paths"]["/v1/scenes/{scene_id}/scans"]["post"]["requestBody"]

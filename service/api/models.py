@@ -198,6 +198,11 @@ class StoredScan(BaseModel):
     id: str
     name: str | None
     state: str
+    far_ranges: int = Field(
+        default=0,
+        description="finite ranges beyond the sensor's max_range, treated as invalid (not "
+        "surfaces): counted when the scan was decoded",
+    )
 
 
 class JobRef(BaseModel):
