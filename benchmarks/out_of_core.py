@@ -6,7 +6,8 @@ scans into a new store (mapping mode, 1 cm voxels by default) with a tile cache 
 ``--cache-mb`` and reports, per street length: time, peak RSS of each process, tiles, bytes
 on disk, how large a dense float32 grid of the tiles' bounding box would be, and a hash of
 the fused tiles. Each run is a fresh child process, so peak RSS is its own. The largest length
-runs again on a LocalCluster of 2 workers and on an external cluster (a ``dask scheduler`` and
+runs again on the local cluster that ``--workers 2`` starts (a scheduler process and 2 worker
+processes, children of the run) and on an external cluster (a ``dask scheduler`` and
 2 ``dask worker`` processes started here), for the speed-up and to check that the tiles are the
 same bits wherever the units ran. ``rangefuse warmup`` runs first, so that no timed run
 compiles kernels.
@@ -219,13 +220,13 @@ def main() -> None:
         )
     here, local, external = results[-3:]
     print(
-        f"speed-up over in-process: LocalCluster of {args.workers} workers "
+        f"speed-up over in-process: local cluster of {args.workers} workers "
         f"{here['seconds'] / local['seconds']:.2f}x, external cluster of {args.workers} workers "
         f"{here['seconds'] / external['seconds']:.2f}x (scheduler peak RSS "
         f"{external['scheduler_rss_mb']:.0f} MB)"
     )
     same = here["hash"] == local["hash"] == external["hash"]
-    print(f"same bits in-process, on the LocalCluster and on the external cluster: {same}")
+    print(f"same bits in-process, on the local cluster and on the external cluster: {same}")
     if not same:
         raise SystemExit(1)
 

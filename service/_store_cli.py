@@ -117,7 +117,7 @@ def fuse_into_store(
 
 @contextlib.contextmanager
 def _runner(args: argparse.Namespace) -> Iterator[Runner]:
-    """Here, on a LocalCluster of ``--workers N``, or on the cluster of ``--scheduler``."""
+    """Here, on a local cluster of ``--workers N``, or on the cluster of ``--scheduler``."""
     workers = getattr(args, "workers", None)
     scheduler = getattr(args, "scheduler", None)
     if workers is None and scheduler is None:
@@ -273,7 +273,7 @@ def workers_option(parser: argparse.ArgumentParser) -> None:
         type=positive_int,
         default=None,
         metavar="N",
-        help="run the units of work on a Dask LocalCluster of N worker processes, numba "
+        help="run the units of work on a local Dask cluster of N worker processes, numba "
         "threads divided among them (default: in this process; same bits either way)",
     )
     parser.add_argument(

@@ -38,7 +38,7 @@ def test_meshing_benchmark_smoke():
 @pytest.mark.slow
 def test_out_of_core_benchmark_smoke(tmp_path):
     out = _run("out_of_core.py", "--quick", "--tmp", str(tmp_path))
-    assert "speed-up over in-process: LocalCluster of 2 workers" in out
+    assert "speed-up over in-process: local cluster of 2 workers" in out
     assert "on the external cluster: True" in out
 
 
