@@ -323,12 +323,14 @@ class _LocalProcesses:
 
 
 def _die_with_parent() -> None:
-    """In a child before it runs: be killed when the thread that started it ends."""
-    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-    libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    """In a child before it runs: be killed when the thread that started it ends. Only a
+    call of a function resolved beforehand (no ``dlopen`` between fork and exec)."""
+    _PRCTL(_PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
 _PR_SET_PDEATHSIG = 1
+#: libc's prctl, resolved in the parent (Linux; the project's platform).
+_PRCTL = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True).prctl
 
 
 def _limit_bytes(memory_limit: str, workers: int) -> int:
