@@ -18,15 +18,14 @@ import httpx
 import numpy as np
 from rangefuse.engine import Sensor
 
+from tests import test_service
 from tests.test_service import Server
 
 _MIB = 1 << 20
 
 
 def npy_bytes(array: np.ndarray) -> bytes:
-    buf = io.BytesIO()
-    np.save(buf, array)
-    return buf.getvalue()
+    return test_service._npy(array)
 
 
 def npz_bytes(compressed: bool = False, **arrays: Any) -> bytes:
@@ -250,9 +249,7 @@ def rss_kib(pid: int) -> tuple[int, int]:
 
 
 def client_of(server: Server) -> httpx.Client:
-    return httpx.Client(
-        base_url=server.url, headers={"Authorization": f"Bearer {server.token}"}, timeout=120
-    )
+    return test_service.client_of(server, timeout=120)
 
 
 def new_scene(client: httpx.Client) -> str:

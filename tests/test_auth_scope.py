@@ -17,7 +17,7 @@ import pytest
 from rangefuse.storage import Store
 
 from tests.test_offline_docs import CHROMIUM, Browser
-from tests.test_service import ROOT, Server, _scene_body
+from tests.test_service import ROOT, _scene_body, serving
 
 SCENE = {"name": "desk", "voxel_size": 0.05, "mode": "mapping"}
 
@@ -41,12 +41,8 @@ def _n_scenes(data_dir) -> int:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    with pytest.MonkeyPatch.context() as env:
-        env.setenv("RANGEFUSE_WORKERS", "1")  # no job runs here: one worker is enough
-        srv = Server(tmp_path_factory.mktemp("data")).start()
-    srv.token = srv.read_token()
-    yield srv
-    srv.stop()
+    # no job runs here: one worker is enough
+    yield from serving(tmp_path_factory.mktemp("data"), RANGEFUSE_WORKERS="1")
 
 
 @pytest.fixture(scope="module")

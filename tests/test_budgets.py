@@ -4,7 +4,6 @@ real store) and the command line."""
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import resource
@@ -13,7 +12,6 @@ import sys
 import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 import pytest
 from rangefuse.engine import (
@@ -46,7 +44,7 @@ from rangefuse.storage import Store, write_dataset
 from rangefuse.storage.archive import ScanArchive
 
 from .test_cli import run_main
-from .test_service import Server
+from .test_service import _npy, client_of, serving
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -228,34 +226,22 @@ def test_the_datasets_fit_the_default_limits():
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    with pytest.MonkeyPatch.context() as env:
-        env.setenv("RANGEFUSE_WORKERS", "1")
-        env.setenv("RANGEFUSE_MAX_SCENE_TILES", "1000")
-        env.setenv("RANGEFUSE_MAX_SCENE_BYTES", "16MiB")
-        env.setenv("RANGEFUSE_MAX_SCENES_PER_TENANT", "8")
-        srv = Server(tmp_path_factory.mktemp("data")).start()
-    srv.token = srv.read_token()
-    yield srv
-    srv.stop()
+    yield from serving(
+        tmp_path_factory.mktemp("data"), RANGEFUSE_WORKERS="1",
+        RANGEFUSE_MAX_SCENE_TILES="1000", RANGEFUSE_MAX_SCENE_BYTES="16MiB",
+        RANGEFUSE_MAX_SCENES_PER_TENANT="8",
+    )  # fmt: skip
 
 
 @pytest.fixture(scope="module")
 def client(server):
-    with httpx.Client(
-        base_url=server.url, headers={"Authorization": f"Bearer {server.token}"}, timeout=120
-    ) as c:
+    with client_of(server, timeout=120) as c:
         yield c
 
 
 @pytest.fixture(scope="module")
 def room():
     return make_dataset("room", views=2)
-
-
-def _npy(array: np.ndarray) -> bytes:
-    buf = io.BytesIO()
-    np.save(buf, array)
-    return buf.getvalue()
 
 
 def _upload(client, scene_id, scan):

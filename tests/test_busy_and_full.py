@@ -25,7 +25,7 @@ from rangefuse.engine.synth import make_dataset
 from rangefuse.service.accounts import Accounts
 from rangefuse.storage import Store, open_store
 
-from tests.test_service import Server, _meta, _npy, _wait
+from tests.test_service import Server, _meta, _npy, _wait, client_of
 
 H = 0.02
 
@@ -33,12 +33,6 @@ H = 0.02
 @pytest.fixture(scope="module")
 def room():
     return make_dataset("room", views=8)
-
-
-def _client(server: Server, token: str) -> httpx.Client:
-    return httpx.Client(
-        base_url=server.url, headers={"Authorization": f"Bearer {token}"}, timeout=60
-    )
 
 
 def _new_token(data_dir: Path, tenant: str) -> str:
@@ -70,8 +64,8 @@ def _wait_running(client: httpx.Client, job_id: str, timeout: float = 120.0) -> 
 def test_deleting_a_scene_whose_job_runs_answers_at_once(tmp_path, room):
     server = Server(tmp_path / "data").start()
     try:
-        owner = _client(server, server.read_token())
-        other = _client(server, _new_token(server.data_dir, "other"))
+        owner = client_of(server, server.read_token())
+        other = client_of(server, _new_token(server.data_dir, "other"))
         other_scene = _scene(other)
         scene = _scene(owner, voxel=0.01)  # a job of some seconds
         job = None
@@ -84,7 +78,7 @@ def test_deleting_a_scene_whose_job_runs_answers_at_once(tmp_path, room):
 
         def delete(_: int) -> tuple[int, float, dict]:
             t0 = time.perf_counter()
-            with _client(server, owner.headers["Authorization"][7:]) as c:
+            with client_of(server, owner.headers["Authorization"][7:]) as c:
                 r = c.delete(f"/v1/scenes/{scene}")
             return r.status_code, time.perf_counter() - t0, r.json() if r.content else {}
 
@@ -157,7 +151,7 @@ def test_a_full_disk_answers_507_and_the_service_carries_on(tmp_path, room):
     with _tmpfs(tmp_path / "disk", 64) as disk:
         server = Server(disk / "data").start()
         try:
-            client = _client(server, server.read_token())
+            client = client_of(server, server.read_token())
             scene = _scene(client)
             filler = _fill(disk)
             # uploads and new scenes: 507 with a message, nothing stored, nothing left over

@@ -50,7 +50,7 @@ from tests.hostile_files import (
     zip_archive,
 )
 from tests.test_cli import run_main
-from tests.test_service import Server
+from tests.test_service import serving
 
 SENSOR = PinholeSensor(width=32, height=24, fx=30.0, fy=30.0, cx=15.5, cy=11.5, max_range=10.0)
 RANGES = np.random.default_rng(0).uniform(1.0, 5.0, SENSOR.shape).astype(np.float32)
@@ -535,10 +535,7 @@ def test_cli_refuses_a_bomb_in_one_line(tmp_path: Path, bombs, capsys) -> None:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    srv = Server(tmp_path_factory.mktemp("data"), max_upload_mb=16).start()
-    srv.token = srv.read_token()
-    yield srv
-    srv.stop()
+    yield from serving(tmp_path_factory.mktemp("data"), max_upload_mb=16)
 
 
 def test_service_refuses_every_hostile_upload_and_keeps_serving(server, bombs) -> None:

@@ -27,7 +27,16 @@ from rangefuse.service.app import create_app
 from rangefuse.service.settings import Settings
 from rangefuse.storage import Store
 
-from tests.test_service import ROOT, Server, _meta, _n_scans, _npy, _scene_body, _upload
+from tests.test_service import (
+    ROOT,
+    _meta,
+    _n_scans,
+    _npy,
+    _scene_body,
+    _upload,
+    client_of,
+    serving,
+)
 
 TTL_S = 4.0  # the test server's RANGEFUSE_IDEMPOTENCY_TTL_S
 
@@ -123,20 +132,15 @@ def test_the_digest_covers_both_parts_and_where_they_split() -> None:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    with pytest.MonkeyPatch.context() as env:
-        env.setenv("RANGEFUSE_IDEMPOTENCY_TTL_S", str(TTL_S))
-        env.setenv("RANGEFUSE_WORKERS", "1")
-        srv = Server(tmp_path_factory.mktemp("data")).start()
-    srv.token = srv.read_token()
-    yield srv
-    srv.stop()
+    yield from serving(
+        tmp_path_factory.mktemp("data"), RANGEFUSE_IDEMPOTENCY_TTL_S=str(TTL_S),
+        RANGEFUSE_WORKERS="1",
+    )  # fmt: skip
 
 
 @pytest.fixture(scope="module")
 def client(server):
-    with httpx.Client(
-        base_url=server.url, headers={"Authorization": f"Bearer {server.token}"}, timeout=60
-    ) as c:
+    with client_of(server) as c:
         yield c
 
 

@@ -24,7 +24,7 @@ from rangefuse.storage.importers import encode_png, read_source
 from tests.hostile_files import client_of, new_scene, npy_bytes
 from tests.test_bunny import DATA as BUNNY
 from tests.test_cli import run_main
-from tests.test_service import Server
+from tests.test_service import serving
 
 CAMERA = PinholeSensor(
     width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5, range_convention="z", max_range=10.0
@@ -201,10 +201,7 @@ def test_cli_accept_far_ranges_is_not_for_importers(tmp_path: Path, capsys) -> N
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    srv = Server(tmp_path_factory.mktemp("data")).start()
-    srv.token = srv.read_token()
-    yield srv
-    srv.stop()
+    yield from serving(tmp_path_factory.mktemp("data"))
 
 
 def _meta(**extra) -> str:

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -35,10 +36,13 @@ def _free_port() -> int:
 class Server:
     """``rangefuse serve`` in a subprocess."""
 
-    def __init__(self, data_dir: Path, max_upload_mb: float = 8.0) -> None:
+    def __init__(
+        self, data_dir: Path, max_upload_mb: float = 8.0, env: dict[str, str] | None = None
+    ) -> None:
         self.data_dir = data_dir
         self.port = _free_port()
         self.max_upload_mb = max_upload_mb
+        self.env = env or {}  # more RANGEFUSE_* settings
         self.token = ""
         self.proc: subprocess.Popen[str] | None = None
         self.lines: list[str] = []  # everything the server printed
@@ -49,6 +53,7 @@ class Server:
             "RANGEFUSE_MAX_UPLOAD_MB": str(self.max_upload_mb),
             "RANGEFUSE_POLL_S": "0.05",
             "PYTHONUNBUFFERED": "1",
+            **self.env,
         }
         cmd = [
             sys.executable,
@@ -114,19 +119,34 @@ class Server:
                 self.proc.kill()
 
 
+def serving(data_dir: Path, max_upload_mb: float = 8.0, **env: str) -> Iterator[Server]:
+    """A started server with its first token (``env``: more ``RANGEFUSE_*`` settings),
+    stopped afterwards: ``yield from`` it in a fixture."""
+    srv = Server(data_dir, max_upload_mb, env).start()
+    try:
+        srv.token = srv.read_token()
+        yield srv
+    finally:
+        srv.stop()
+
+
+def client_of(server: Server, token: str | None = None, timeout: float = 60) -> httpx.Client:
+    """An HTTP client of ``server`` with ``token`` (default: the server's first token)."""
+    return httpx.Client(
+        base_url=server.url,
+        headers={"Authorization": f"Bearer {token or server.token}"},
+        timeout=timeout,
+    )
+
+
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    srv = Server(tmp_path_factory.mktemp("data")).start()
-    srv.token = srv.read_token()
-    yield srv
-    srv.stop()
+    yield from serving(tmp_path_factory.mktemp("data"))
 
 
 @pytest.fixture(scope="module")
 def client(server):
-    with httpx.Client(
-        base_url=server.url, headers={"Authorization": f"Bearer {server.token}"}, timeout=60
-    ) as c:
+    with client_of(server) as c:
         yield c
 
 
