@@ -42,6 +42,9 @@ META_FIELDS = ("name", "pose", "sensor", "noise", "depth_scale", "accept_far_ran
 #: What building a value object from foreign JSON can raise besides InvalidInputError.
 _VALUE_ERRORS = (TypeError, ValueError, KeyError, AttributeError, OverflowError, RecursionError)
 _FAR_HINT = "to fuse it anyway, send meta.accept_far_ranges: true"
+_NO_SCENE_SENSOR = (
+    "the scene has no sensor of its own (give meta.sensor, or the scene's sensor when creating it)"
+)
 #: Largest ``depth_scale``: 65535 units stay finite in float32.
 _MAX_DEPTH_SCALE = 1e30
 
@@ -75,10 +78,14 @@ def _meta(text: bytes) -> dict[str, Any]:
 
 
 def decode_scan(
-    range_bytes: bytes, meta_bytes: bytes, max_pixels: int | None = DEFAULT_MAX_PIXELS
+    range_bytes: bytes,
+    meta_bytes: bytes,
+    max_pixels: int | None = DEFAULT_MAX_PIXELS,
+    scene_sensor: Sensor | None = None,
 ) -> UploadedScan:
     """Build a validated :class:`engine.Scan` from the two parts of an upload, reading no
-    range map over ``max_pixels`` pixels (None: no limit)."""
+    range map over ``max_pixels`` pixels (None: no limit). ``scene_sensor``: the scene's
+    default sensor, used when ``meta`` (and an ``.npz``) give none."""
     meta = _meta(meta_bytes)
     accept = bool(meta.get("accept_far_ranges", False))
     if not range_bytes:
@@ -86,13 +93,17 @@ def decode_scan(
     head = range_bytes[:8]
     try:
         if head.startswith(b"PK"):
-            scan = _npz_scan(range_bytes, meta, max_pixels, accept)
+            scan = _npz_scan(range_bytes, meta, max_pixels, accept, scene_sensor)
             return UploadedScan(scan, meta.get("name"))
         kind = _kind(head)
-        for field in ("pose", "sensor"):
-            if field not in meta:
-                raise UploadError(f"meta.{field}: missing")
-        sensor = _sensor(meta["sensor"])
+        if "pose" not in meta:
+            raise UploadError("meta.pose: missing")
+        if "sensor" in meta:
+            sensor = _sensor(meta["sensor"])
+        elif scene_sensor is not None:
+            sensor = scene_sensor
+        else:
+            raise UploadError(f"meta.sensor: missing, and {_NO_SCENE_SENSOR}")
         pose = _pose(meta["pose"])
         noise = None if meta.get("noise") is None else _noise(meta["noise"])
         if kind == "npy":
@@ -173,13 +184,24 @@ def _npy(data: bytes, sensor: Sensor, max_pixels: int | None) -> np.ndarray:
     return npy_array(data, header, "range")
 
 
-def _npz_scan(data: bytes, meta: dict[str, Any], max_pixels: int | None, accept: bool) -> Scan:
-    """A FORMAT.md scan ``.npz``, read from memory; ``meta.sensor`` is its default sensor,
-    and ``meta.pose``, when given, must agree with the pose inside."""
-    default = _sensor(meta["sensor"]) if "sensor" in meta else None
+def _npz_scan(
+    data: bytes,
+    meta: dict[str, Any],
+    max_pixels: int | None,
+    accept: bool,
+    scene_sensor: Sensor | None,
+) -> Scan:
+    """A FORMAT.md scan ``.npz``, read from memory; ``meta.sensor`` (else the scene's) is its
+    default sensor, and ``meta.pose``, when given, must agree with the pose inside."""
+    default = _sensor(meta["sensor"]) if "sensor" in meta else scene_sensor
     pose = _pose(meta["pose"]) if "pose" in meta else None
     scan = read_scan_file(
-        data, default, max_pixels=max_pixels, accept_far_ranges=accept, where="range (.npz)"
+        data,
+        default,
+        max_pixels=max_pixels,
+        accept_far_ranges=accept,
+        where="range (.npz)",
+        no_sensor=f"no meta.sensor in the upload, and {_NO_SCENE_SENSOR}",
     )
     if pose is not None and not np.allclose(pose, scan.T_W_S):
         raise UploadError("meta.pose: disagrees with the pose inside the .npz")

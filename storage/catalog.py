@@ -34,12 +34,12 @@ _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS scenes(
     id TEXT PRIMARY KEY, name TEXT NOT NULL, tenant TEXT NOT NULL,
-    grid TEXT NOT NULL, params TEXT NOT NULL, created_at REAL NOT NULL);
+    grid TEXT NOT NULL, params TEXT NOT NULL, created_at REAL NOT NULL, sensor TEXT);
 CREATE TABLE IF NOT EXISTS scans(
     scene_id TEXT NOT NULL, id TEXT NOT NULL, seq INTEGER NOT NULL, name TEXT,
     state TEXT NOT NULL, ox REAL NOT NULL, oy REAL NOT NULL, oz REAL NOT NULL,
     reach_m REAL NOT NULL, checksum TEXT NOT NULL, created_at REAL NOT NULL,
-    PRIMARY KEY(scene_id, id));
+    far_ranges INTEGER, PRIMARY KEY(scene_id, id));
 CREATE UNIQUE INDEX IF NOT EXISTS scans_seq ON scans(scene_id, seq);
 CREATE TABLE IF NOT EXISTS tile_scans(
     scene_id TEXT NOT NULL, tile INTEGER NOT NULL, scan_id TEXT NOT NULL,
@@ -57,6 +57,13 @@ CREATE TABLE IF NOT EXISTS mesh_cache(
     PRIMARY KEY(scene_id, tile, options)) WITHOUT ROWID;
 """
 
+#: Columns added after version 1 was released, ``(table, column, declaration)``: a catalog
+#: written before them gains them when it is opened (NULL in its existing rows).
+_ADDED_COLUMNS = (
+    ("scenes", "sensor", "TEXT"),  # the scene's default sensor (JSON), if it has one
+    ("scans", "far_ranges", "INTEGER"),  # ranges beyond max_range set invalid when decoded
+)
+
 #: States of a scan: archived and acknowledged; fused into the tiles; being removed.
 SCAN_STATES = ("stored", "fused", "removing")
 
@@ -73,6 +80,9 @@ class SceneRow:
     grid: dict[str, Any]
     params: dict[str, Any]
     created_at: float
+    #: The scene's default sensor (``Sensor.to_dict``): given when the scene was created or
+    #: taken from its first stored scan; None until then.
+    sensor: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -85,6 +95,9 @@ class ScanRow:
     reach_m: float
     checksum: str
     created_at: float
+    #: Finite ranges beyond the sensor's max_range, set invalid when the scan was decoded
+    #: (None: stored before the catalog counted them).
+    far_ranges: int | None = None
 
 
 def _packed(tiles: np.ndarray | Sequence[int]) -> list[int]:
@@ -101,6 +114,7 @@ class Catalog:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.executescript(_SCHEMA)
+            self._add_columns()
             row = self._db.execute("SELECT value FROM meta WHERE key='version'").fetchone()
         except sqlite3.DatabaseError as exc:
             raise CatalogError(f"{self.path}: not a rangefuse catalog ({exc})") from None
@@ -114,6 +128,17 @@ class Catalog:
                 f"{CATALOG_VERSION}"
             )
         self._depth = 0
+
+    def _add_columns(self) -> None:
+        """Give a catalog written before :data:`_ADDED_COLUMNS` those columns."""
+        for table, column, declaration in _ADDED_COLUMNS:
+            have = {r[1] for r in self._db.execute(f"PRAGMA table_info({table})")}
+            if column not in have:
+                try:
+                    self._db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {declaration}")
+                except sqlite3.OperationalError as exc:  # another process added it first
+                    if "duplicate column" not in str(exc):
+                        raise
 
     def close(self) -> None:
         self._db.close()
@@ -143,23 +168,42 @@ class Catalog:
 
     # --- scenes -------------------------------------------------------------------------------
     def create_scene(
-        self, scene_id: str, name: str, tenant: str, grid: dict[str, Any], params: dict[str, Any]
+        self,
+        scene_id: str,
+        name: str,
+        tenant: str,
+        grid: dict[str, Any],
+        params: dict[str, Any],
+        sensor: dict[str, Any] | None = None,
     ) -> SceneRow:
         now = time.time()
         self._db.execute(
-            "INSERT INTO scenes(id, name, tenant, grid, params, created_at) VALUES(?,?,?,?,?,?)",
-            (scene_id, name, tenant, json.dumps(grid), json.dumps(params), now),
+            "INSERT INTO scenes(id, name, tenant, grid, params, created_at, sensor) "
+            "VALUES(?,?,?,?,?,?,?)",
+            (scene_id, name, tenant, json.dumps(grid), json.dumps(params), now, _json(sensor)),
         )
-        return SceneRow(scene_id, name, tenant, grid, params, now)
+        return SceneRow(scene_id, name, tenant, grid, params, now, sensor)
+
+    _SCENE_COLUMNS = "id, name, tenant, grid, params, created_at, sensor"
 
     def scene(self, scene_id: str) -> SceneRow | None:
         row = self._db.execute(
-            "SELECT id, name, tenant, grid, params, created_at FROM scenes WHERE id=?", (scene_id,)
+            f"SELECT {self._SCENE_COLUMNS} FROM scenes WHERE id=?", (scene_id,)
         ).fetchone()
         return None if row is None else self._scene_row(row)
 
+    def set_scene_sensor(
+        self, scene_id: str, sensor: dict[str, Any], only_if_none: bool = False
+    ) -> bool:
+        """Make ``sensor`` (``Sensor.to_dict``) the scene's default sensor; with
+        ``only_if_none``, only when it has none yet. Returns whether the row changed."""
+        sql = "UPDATE scenes SET sensor=? WHERE id=?"
+        if only_if_none:
+            sql += " AND sensor IS NULL"
+        return self._db.execute(sql, (json.dumps(sensor), scene_id)).rowcount > 0
+
     def scenes(self, tenant: str | None = None) -> list[SceneRow]:
-        sql = "SELECT id, name, tenant, grid, params, created_at FROM scenes"
+        sql = f"SELECT {self._SCENE_COLUMNS} FROM scenes"
         args: tuple[Any, ...] = ()
         if tenant is not None:
             sql += " WHERE tenant=?"
@@ -168,7 +212,10 @@ class Catalog:
 
     @staticmethod
     def _scene_row(row: tuple[Any, ...]) -> SceneRow:
-        return SceneRow(row[0], row[1], row[2], json.loads(row[3]), json.loads(row[4]), row[5])
+        sensor = None if row[6] is None else json.loads(row[6])
+        return SceneRow(
+            row[0], row[1], row[2], json.loads(row[3]), json.loads(row[4]), row[5], sensor
+        )
 
     def delete_scene(self, scene_id: str) -> None:
         with self.transaction():
@@ -186,8 +233,10 @@ class Catalog:
         origin: Sequence[float],
         reach_m: float,
         checksum: str,
+        far_ranges: int | None = None,
     ) -> int:
-        """Insert a scan in state ``stored``; returns its sequence number."""
+        """Insert a scan in state ``stored``; returns its sequence number. ``far_ranges``:
+        ranges beyond the sensor's max_range set invalid when it was decoded."""
         with self.transaction():
             row = self._db.execute(
                 "SELECT COALESCE(MAX(seq), 0) + 1 FROM scans WHERE scene_id=?", (scene_id,)
@@ -195,7 +244,7 @@ class Catalog:
             seq = int(row[0])
             self._db.execute(
                 "INSERT INTO scans(scene_id, id, seq, name, state, ox, oy, oz, reach_m, checksum,"
-                " created_at) VALUES(?,?,?,?,?,?,?,?,?,?,?)",
+                " created_at, far_ranges) VALUES(?,?,?,?,?,?,?,?,?,?,?,?)",
                 (
                     scene_id,
                     scan_id,
@@ -208,15 +257,16 @@ class Catalog:
                     float(reach_m),
                     checksum,
                     time.time(),
+                    None if far_ranges is None else int(far_ranges),
                 ),
             )
         return seq
 
-    _SCAN_COLUMNS = "id, seq, name, state, ox, oy, oz, reach_m, checksum, created_at"
+    _SCAN_COLUMNS = "id, seq, name, state, ox, oy, oz, reach_m, checksum, created_at, far_ranges"
 
     @staticmethod
     def _scan_row(r: tuple[Any, ...]) -> ScanRow:
-        return ScanRow(r[0], r[1], r[2], r[3], (r[4], r[5], r[6]), r[7], r[8], r[9])
+        return ScanRow(r[0], r[1], r[2], r[3], (r[4], r[5], r[6]), r[7], r[8], r[9], r[10])
 
     def scan(self, scene_id: str, scan_id: str) -> ScanRow | None:
         row = self._db.execute(
@@ -425,6 +475,10 @@ class Catalog:
                 f"SELECT COUNT(*) FROM {table} WHERE scene_id=?", (scene_id,)
             ).fetchone()[0]
         )
+
+
+def _json(value: dict[str, Any] | None) -> str | None:
+    return None if value is None else json.dumps(value)
 
 
 def _chunks(items: list[int], n: int) -> Iterator[list[int]]:

@@ -82,10 +82,10 @@ def _read_npz(
 _MAX_SENSOR_BYTES = 1 << 20
 
 
-def _scan_sensor(npz: NpzArchive, where: str, default: Sensor | None) -> Sensor:
+def _scan_sensor(npz: NpzArchive, where: str, default: Sensor | None, no_sensor: str) -> Sensor:
     if "sensor" not in npz:
         if default is None:
-            raise DatasetError(f"{where}: no per-scan 'sensor' and no {SENSOR_FILE} in the dataset")
+            raise DatasetError(f"{where}: no per-scan 'sensor' and {no_sensor}")
         return default
     header = npz.header("sensor")
     if header.dtype.kind not in "US" or header.shape != ():
@@ -132,6 +132,7 @@ def read_scan_file(
     max_pixels: int | None = DEFAULT_MAX_PIXELS,
     accept_far_ranges: bool = False,
     where: str | None = None,
+    no_sensor: str = f"no {SENSOR_FILE} in the dataset",
 ) -> Scan:
     """Read one ``scans/*.npz`` file (FORMAT.md) into a validated :class:`Scan`.
 
@@ -151,6 +152,9 @@ def read_scan_file(
         Passed to :class:`Scan`: keep a map whose ranges mostly lie beyond ``max_range``.
     where : str or None
         Names the file in messages (default: the path).
+    no_sensor : str
+        Where else a sensor could have come from, for the message when the file holds none
+        and ``default_sensor`` is None (an upload has no ``sensor.json``).
 
     Raises
     ------
@@ -169,7 +173,7 @@ def read_scan_file(
             for key in ("range", "pose"):
                 if key not in npz:
                     raise DatasetError(f"{where}: missing key {key!r} (has {npz.keys})")
-            sensor = _scan_sensor(npz, where, default_sensor)
+            sensor = _scan_sensor(npz, where, default_sensor, no_sensor)
             pose = _scan_pose(npz, where)
             header = npz.header("range")
             check_range_header(header, where, "key 'range'", sensor, max_pixels)

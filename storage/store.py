@@ -138,13 +138,15 @@ class Store:
         params: FusionParams,
         name: str | None = None,
         tenant: str = "local",
+        sensor: dict[str, Any] | None = None,
     ) -> None:
-        """Record a scene and create its Zarr group and tile array."""
+        """Record a scene and create its Zarr group and tile array. ``sensor``: its default
+        sensor (``Sensor.to_dict``); without one, its first stored scan's becomes it."""
         group = self.scene_path(scene_id) / "scene.zarr"
         ZarrTiles.create(group, grid.tile_size)
         with self.catalog.transaction():
             self.catalog.create_scene(
-                scene_id, name or scene_id, tenant, grid.to_dict(), params.to_dict()
+                scene_id, name or scene_id, tenant, grid.to_dict(), params.to_dict(), sensor
             )
 
     def scene_spec(self, scene_id: str) -> tuple[GridSpec, FusionParams]:
@@ -207,8 +209,12 @@ class Store:
                 archive.publish(group)
             with self.catalog.transaction():
                 for i, entry in entries.items():
-                    scene_id, scan_id, _, name = items[i]
-                    self.catalog.add_scan(scene_id, scan_id, name, *spheres[i], entry.checksum)
+                    scene_id, scan_id, scan, name = items[i]
+                    self.catalog.add_scan(
+                        scene_id, scan_id, name, *spheres[i], entry.checksum, scan.far_ranges
+                    )
+                    # a scene without a sensor of its own takes its first scan's
+                    self.catalog.set_scene_sensor(scene_id, scan.sensor.to_dict(), True)
         except Exception as exc:
             for i, entry in entries.items():
                 shutil.rmtree(entry.tmp, ignore_errors=True)

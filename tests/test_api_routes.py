@@ -64,7 +64,7 @@ def test_response_models_keep_the_answers_fields() -> None:
     """The JSON the service answered before the models existed (tests/test_service.py)."""
     assert list(SceneOut.model_fields) == [
         "id", "name", "voxel_size", "tile_size", "mode", "bounds", "noise", "filter",
-        "max_discontinuity", "no_return", "created_at",
+        "max_discontinuity", "no_return", "sensor", "created_at",
     ]  # fmt: skip
     assert list(SceneDetail.model_fields)[-2:] == ["scans", "tiles"]
     job = JobOut(id="j", kind="integrate", scene_id="s", state="queued", progress=0.0,

@@ -58,6 +58,11 @@ def declared(name: str, *, response: bool = False, note: str = "") -> Any:
 
 # --- requests ---------------------------------------------------------------------------------
 
+_SENSOR_HELP = (
+    "the scene's default sensor, as in sensor.json (docs/formats.md): uploads whose meta "
+    "gives no sensor (and .npz scans that hold none) use it"
+)
+
 
 class NoiseIn(BaseModel):
     """The scene's default noise model (METHOD §1); a scan's ``meta.noise`` overrides it."""
@@ -83,6 +88,10 @@ class SceneIn(BaseModel):
     filter: str = declared("filter")
     max_discontinuity: float | None = declared("max_discontinuity")
     no_return: str = declared("no_return")
+    sensor: dict[str, Any] | None = Field(
+        default=None,
+        description=_SENSOR_HELP + "; without one, the first uploaded scan's sensor becomes it",
+    )
 
 
 class ReconstructionIn(BaseModel):
@@ -143,6 +152,7 @@ class SceneOut(BaseModel):
     filter: str = declared("filter", response=True)
     max_discontinuity: float | None = declared("max_discontinuity", response=True)
     no_return: str = declared("no_return", response=True)
+    sensor: dict[str, Any] | None = Field(description=_SENSOR_HELP + "; null: none yet")
     created_at: float = Field(description="seconds since the epoch")
 
     @classmethod
@@ -167,6 +177,7 @@ class SceneOut(BaseModel):
             filter=params.filter,
             max_discontinuity=params.max_discontinuity,
             no_return=params.no_return,
+            sensor=row.sensor,
             created_at=row.created_at,
         )
 
@@ -187,11 +198,16 @@ class ScanOut(BaseModel):
     seq: int = Field(description="order of arrival in the scene, from 1")
     checksum: str
     created_at: float
+    far_ranges: int | None = Field(
+        description="finite ranges beyond the sensor's max_range, treated as invalid (not "
+        "surfaces): counted when the scan was decoded (null: stored before they were recorded)"
+    )
 
     @classmethod
     def from_row(cls, row: ScanRow) -> ScanOut:
         return cls(id=row.id, name=row.name, state=row.state, seq=row.seq,
-                   checksum=row.checksum, created_at=row.created_at)  # fmt: skip
+                   checksum=row.checksum, created_at=row.created_at,
+                   far_ranges=row.far_ranges)  # fmt: skip
 
 
 class StoredScan(BaseModel):

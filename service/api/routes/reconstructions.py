@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 from typing import Annotated, Literal
 
@@ -26,6 +27,14 @@ router = APIRouter(
 
 _MEDIA = {"ply": "application/octet-stream", "obj": "text/plain", "glb": "model/gltf-binary",
           "stl": "model/stl"}  # fmt: skip
+
+
+def download_name(name: str, fallback: str) -> str:
+    """A file name for a download named after the scene: letters, digits, ``.``, ``-`` and
+    ``_`` kept, every other run of characters one ``_``; ``fallback`` (the scene's id) when
+    nothing is left."""
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")[:100]
+    return safe or fallback
 
 
 @router.post("/reconstructions", status_code=202, response_model=Accepted, responses=problems(400))
@@ -62,7 +71,8 @@ def get_mesh(
     format: Annotated[Literal["ply", "obj", "glb", "stl"], Query()] = "ply",
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Response:
-    """The latest reconstruction, streamed, with an ``ETag`` (409 before the first)."""
+    """The latest reconstruction, streamed, with an ``ETag`` (409 before the first), as a
+    file named after the scene (``Content-Disposition``)."""
     found = queue.mesh(scene.id)
     if found is None:
         raise HTTPException(409, "no reconstruction yet: POST /v1/scenes/{id}/reconstructions")
@@ -84,6 +94,8 @@ def get_mesh(
         headers={
             "ETag": tag,
             "Content-Length": str(len(payload)),
-            "Content-Disposition": f'attachment; filename="{scene.id}.{format}"',
+            "Content-Disposition": (
+                f'attachment; filename="{download_name(scene.name, scene.id)}.{format}"'
+            ),
         },
     )

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+from pathlib import PurePosixPath, PureWindowsPath
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, HTTPException, Request
 from fastapi.concurrency import run_in_threadpool
 from python_multipart.multipart import MultipartParser, parse_options_header
+from rangefuse.engine import sensor_from_dict
 from rangefuse.engine.params import params_of
 from starlette.requests import ClientDisconnect
 
@@ -48,12 +51,15 @@ _MULTIPART = {
                         "type": "string",
                         "format": "binary",
                         "description": "the range map: .npy (float), scan .npz, 16-bit PNG "
-                        "(with meta.depth_scale) or float32 TIFF",
+                        "(with meta.depth_scale) or float32 TIFF; the scan is named after "
+                        "its filename (without extension) unless meta.name is given",
                     },
                     "meta": {
                         "type": "string",
-                        "description": "JSON: pose (4x4 sensor to world), sensor, and "
-                        f"optionally name, noise {{{_NOISE}}}, depth_scale, accept_far_ranges "
+                        "description": "JSON: pose (4x4 sensor to world), sensor (may be "
+                        "left out when the scene has one: given at its creation or taken from "
+                        f"its first scan), and optionally name, noise {{{_NOISE}}}, "
+                        "depth_scale, accept_far_ranges "
                         "(true: fuse a range map that mostly lies beyond the sensor's max_range "
                         "or looks like millimetres, refused with 422 otherwise)",
                     },
@@ -75,6 +81,8 @@ class _Parts:
 
     def __init__(self) -> None:
         self.parts: dict[str, bytearray] = {}
+        #: The ``filename`` of each part that has one.
+        self.filenames: dict[str, str] = {}
         self._header = b""
         self._value = b""
         self._headers: dict[bytes, bytes] = {}
@@ -109,6 +117,8 @@ class _Parts:
             raise HTTPException(400, f"body: more than {_MAX_PARTS} parts")
         _, options = parse_options_header(self._headers.get(b"content-disposition", b""))
         name = options.get(b"name", b"").decode("utf-8", "replace")
+        if options.get(b"filename"):
+            self.filenames[name] = options[b"filename"].decode("utf-8", "replace")
         self._current = self.parts.setdefault(name, bytearray())
 
     def _data(self, data: bytes, start: int, end: int) -> None:
@@ -116,8 +126,9 @@ class _Parts:
             self._current += data[start:end]
 
 
-async def _read_parts(request: Request, max_upload_mb: float) -> dict[str, bytes]:
-    """The ``range`` and ``meta`` parts of a multipart body (400 or 413 otherwise)."""
+async def _read_parts(request: Request, max_upload_mb: float) -> tuple[dict[str, bytes], str]:
+    """The ``range`` and ``meta`` parts of a multipart body (400 or 413 otherwise), and the
+    range part's file name without folders or extension ('' when it has none)."""
     ctype, options = parse_options_header(request.headers.get("content-type", ""))
     boundary = options.get(b"boundary")
     if ctype != b"multipart/form-data" or not boundary:
@@ -143,7 +154,9 @@ async def _read_parts(request: Request, max_upload_mb: float) -> dict[str, bytes
         if field not in found.parts:
             raise HTTPException(400, f"{field}: missing part")
         parts[field] = bytes(found.parts.pop(field))
-    return parts
+    filename = found.filenames.get("range", "")
+    stem = PurePosixPath(PureWindowsPath(filename).name).stem.strip()
+    return parts, stem[:200] if stem.isprintable() else ""
 
 
 @router.post(
@@ -169,10 +182,13 @@ async def upload_scan(
     the parts' SHA-256, and reusing it for another scan or scene answers 422."""
     if idempotency_key is not None and not 0 < len(idempotency_key) <= 200:
         raise HTTPException(400, "Idempotency-Key: must be 1 to 200 characters")
-    parts = await _read_parts(request, settings.max_upload_mb)
+    parts, filename = await _read_parts(request, settings.max_upload_mb)
+    sensor = None if scene.sensor is None else sensor_from_dict(scene.sensor)
     uploaded = await run_in_threadpool(
-        decode_scan, parts["range"], parts["meta"], settings.max_pixels
+        decode_scan, parts["range"], parts["meta"], settings.max_pixels, sensor
     )
+    if uploaded.name is None and filename:  # named after its file unless meta.name is given
+        uploaded = dataclasses.replace(uploaded, name=filename)
     await run_in_threadpool(check_upload, store, scene, uploaded.scan, settings)  # budgets
     digest = None
     if idempotency_key is not None:

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from fastapi import APIRouter, Response
 from fastapi.responses import JSONResponse
-from rangefuse.engine import FusionParams, GridSpec, NoiseModel
+from rangefuse.engine import FusionParams, GridSpec, NoiseModel, sensor_from_dict
+from rangefuse.engine.errors import InvalidSensorError
 from rangefuse.engine.params import default_eps
 from rangefuse.storage import StoreLockedError
 
@@ -46,16 +49,31 @@ def _scene_spec(body: SceneIn) -> tuple[GridSpec, FusionParams]:
     return grid, params
 
 
+def _scene_sensor(body: SceneIn) -> dict[str, Any] | None:
+    """The scene's default sensor, checked as an upload's would be (422 naming the field),
+    stored in its canonical form."""
+    if body.sensor is None:
+        return None
+    try:
+        return sensor_from_dict(body.sensor).to_dict()
+    except InvalidSensorError:
+        raise
+    except (TypeError, ValueError, KeyError, OverflowError) as exc:
+        raise InvalidSensorError("sensor", f"not a valid sensor ({exc})") from None
+
+
 @router.post("", status_code=201, response_model=SceneOut, responses=problems(400))
 def create_scene(
     body: SceneIn, who: CurrentTenant, store: StoreDep, settings: SettingsDep
 ) -> SceneOut:
-    """A new scene; the answer has every default filled in. 422 past the tenant's scenes or
-    for a closed grid over budget (docs/budgets.md)."""
+    """A new scene; the answer has every default filled in. ``sensor`` is optional: uploads
+    that give none use it, and without it the first uploaded scan's becomes it. 422 past the
+    tenant's scenes or for a closed grid over budget (docs/budgets.md)."""
     grid, params = _scene_spec(body)
+    sensor = _scene_sensor(body)
     check_new_scene(store(), who, grid, settings)
     scene_id = new_id()
-    store().create_scene(scene_id, grid, params, name=body.name, tenant=who)
+    store().create_scene(scene_id, grid, params, name=body.name, tenant=who, sensor=sensor)
     row = store().catalog.scene(scene_id)
     assert row is not None
     return SceneOut.from_row(row)
