@@ -160,5 +160,6 @@ def create_app(settings: Settings) -> FastAPI:
     for router in ROUTERS:
         app.include_router(router)
     _add_api_docs(app, app.openapi_url or "/openapi.json")
+    app.mount("/static/app", StaticFiles(directory=_VENDOR.parent / "app"), name="app")  # page
     app.add_middleware(BodyLimit, limit=int(settings.max_upload_mb * 2**20))
     return app

@@ -36,6 +36,7 @@ from rangefuse.storage.units import Runner
 
 from ._disk import DISK_FULL, is_disk_full
 from .cluster import Cluster, RunInterruptedError, UnitFailedError
+from .previews import make_preview
 from .queue import JobQueue, JobRow
 from .settings import Settings
 
@@ -104,8 +105,10 @@ def _reconstruct(scene: Scene, queue: JobQueue, job: JobRow) -> dict[str, Any]:
         ),
         fsync=True,
     )
+    preview_faces = make_preview(scene.runner, path)  # for the web page (service/previews.py)
     queue.set_mesh(scene.scene_id, job.id, str(path), digest.hexdigest()[:32], mesh.n_faces)
-    return {"faces": mesh.n_faces, "vertices": mesh.n_vertices, **counts}
+    return {"faces": mesh.n_faces, "vertices": mesh.n_vertices, "preview_faces": preview_faces,
+            **counts}  # fmt: skip
 
 
 @dataclass

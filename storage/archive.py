@@ -288,6 +288,12 @@ class ScanArchive:
         """The stored checksum of ``scan_id`` (not verified; :meth:`get` verifies)."""
         return str(self._attrs(scan_id)["checksum"])
 
+    def placement(self, scan_id: str) -> dict[str, Any]:
+        """``{"pose": 4 x 4 list, "sensor": sensor.json form}`` of ``scan_id`` (its metadata
+        only; the ranges are not read)."""
+        attrs = self._attrs(scan_id)
+        return {"pose": attrs["pose"], "sensor": attrs["sensor"]}
+
     def name(self, scan_id: str) -> str | None:
         """The name given to :meth:`put` (such as the file the scan came from)."""
         value = self._attrs(scan_id).get("name")

@@ -33,6 +33,7 @@ VENDORED = [
     "swagger-ui/swagger-ui-bundle.js", "swagger-ui/swagger-ui.css", "swagger-ui/favicon-32x32.png",
     "swagger-ui/LICENSE", "swagger-ui/NOTICE", "swagger-ui/swagger-ui-bundle.js.LICENSE.txt",
     "redoc/redoc.standalone.js", "redoc/LICENSE", "redoc/redoc.standalone.js.LICENSE.txt",
+    "three/three.module.js", "three/three.core.js", "three/OrbitControls.js", "three/LICENSE",
 ]  # fmt: skip
 _ASSET = re.compile(r"""\b(?:src|href)\s*=\s*["']([^"']+)["']""", re.IGNORECASE)
 
@@ -166,6 +167,7 @@ def test_the_vendored_files_and_their_licences_are_there():
     assert present == sorted(VENDORED)
     assert "Apache License" in (VENDOR / "swagger-ui" / "LICENSE").read_text()
     assert "MIT License" in (VENDOR / "redoc" / "LICENSE").read_text()
+    assert "MIT License" in (VENDOR / "three" / "LICENSE").read_text()
 
 
 def test_a_wheel_built_from_the_repository_holds_the_assets(tmp_path):
@@ -189,6 +191,7 @@ def test_a_wheel_built_from_the_repository_holds_the_assets(tmp_path):
             data = z.read(f"rangefuse/service/static/vendor/{name}")
             assert data == (VENDOR / name).read_bytes(), name
         assert "rangefuse/service/static/index.html" in z.namelist()
+        assert "rangefuse/service/static/app/app.js" in z.namelist()  # the web page's code
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium (.ci/run installs it)")

@@ -1,54 +1,194 @@
-"""The web page at / in a real browser (headless Chromium): scenes, jobs, the mesh viewer."""
+"""The web page at / in a real browser: Debian's Chromium driven by Playwright, software WebGL
+(SwiftShader), against a real service. It walks through the workflow a person follows:
+create a scene from the form, upload scans through the file input, reconstruct, see the mesh
+drawn (the WebGL canvas's pixels), hide the inferred faces, open a slice, download the PLY and
+delete the scene. Screenshots of each step go to build/screenshots/ (docs/webapp.md)."""
 
 from __future__ import annotations
 
+import io
+import json
 import shutil
-import subprocess
+from pathlib import Path
 
-import httpx
+import numpy as np
 import pytest
+import trimesh
 
-from tests.test_service import Server, _meta, _npy, _scene_body, _upload, _wait
+from tests.test_service import client_of, serving
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+SHOTS = Path(__file__).resolve().parents[1] / "build" / "screenshots"
+#: Software WebGL in headless Chromium (no GPU on CI machines).
+CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
+
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium (.ci/run installs it)")
 
 
-def _dom(url: str) -> str:
-    out = subprocess.run(
-        [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-         "--virtual-time-budget=15000", "--dump-dom", url],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
-    assert out.returncode == 0, out.stderr[-2000:]
-    return out.stdout
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    yield from serving(tmp_path_factory.mktemp("data"))
 
 
-@pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium (.ci/run installs it)")
-def test_page_lists_scenes_and_jobs_and_shows_the_mesh(tmp_path):
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    """A synthetic object seen by 3 pinhole views, written as a dataset folder
+    (sensor.json and scans/*.npz), as a user would have it on disk; three views leave
+    shadows, whose faces are inferred in closed mode."""
     from rangefuse.engine.synth import make_dataset
+    from rangefuse.storage.dataset import write_dataset
 
     data = make_dataset("object", views=3)
-    srv = Server(tmp_path / "data").start()
+    root = write_dataset(tmp_path_factory.mktemp("object"), data.sensor, data.scans)
+    return data, root
+
+
+@pytest.fixture(scope="module")
+def browser():
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+def _shot(page, name: str) -> None:
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(SHOTS / f"{name}.png"))
+
+
+def _pixels(page) -> dict:
+    """Pixels of the WebGL canvas read right after a render (viewer.pixelStats)."""
+    return page.evaluate("window.rangefuseViewer.pixelStats()")
+
+
+@pytest.fixture
+def page(browser):
+    """A page that saves a screenshot (build/screenshots/failed.png) when its test fails."""
+    page = browser.new_page(viewport={"width": 1400, "height": 900}, accept_downloads=True)
+    page.errors = []
+    page.on("pageerror", lambda exc: page.errors.append(str(exc)))
     try:
-        token = srv.read_token()
-        with httpx.Client(
-            base_url=srv.url, headers={"Authorization": f"Bearer {token}"}, timeout=60
-        ) as c:
-            page = httpx.get(f"{srv.url}/")
-            assert page.status_code == 200 and "rangefuse" in page.text
-            sid = c.post("/v1/scenes", json=_scene_body(data, name="teapot-desk")).json()["id"]
-            for _, scan in data.scans:
-                assert _upload(c, sid, _npy(scan.range_m), _meta(scan)).status_code == 202
-            job = c.post(f"/v1/scenes/{sid}/reconstructions", json={}).json()["job"]["id"]
-            assert _wait(c, job)["state"] == "done"
-            faces = c.get(f"/v1/jobs/{job}").json()["result"]["faces"]
-            listed = c.get("/v1/jobs").json()
-            assert listed[0]["id"] == job and all(j["state"] == "done" for j in listed)
-        dom = _dom(f"{srv.url}/?scene={sid}#token={token}")  # the fragment never leaves the browser
-        assert "teapot-desk" in dom
-        assert f'data-job="{job}" data-state="done"' in dom
-        assert f'data-triangles="{faces}"' in dom
-        # without a token the page still loads and asks for one; the API refuses
-        assert "API token" in _dom(f"{srv.url}/")
+        yield page
     finally:
-        srv.stop()
+        if not page.is_closed():  # the test stopped before the end
+            _shot(page, "failed")
+            page.close()
+
+
+def test_workflow_in_the_browser(server, dataset, page):
+    data, root = dataset
+    page.goto(f"{server.url}/#token={server.token}")  # the fragment never leaves the browser
+    assert "token" not in page.url  # removed from the address bar
+
+    # create a scene from the form (rendered from /openapi.json, with help and defaults)
+    page.click("#new-scene")
+    page.wait_for_selector("#f-voxel_size")
+    assert "voxel edge" in page.inner_text("#scene-fields")  # each parameter's help
+    assert page.input_value("#f-tile_size") == "16"  # and its default
+    page.fill("#f-name", "teapot-desk")
+    page.fill("#f-voxel_size", "0.02")
+    page.fill("#f-tile_size", "8")
+    page.select_option("#f-mode", "closed")
+    box = [x - 0.3 for x in data.bounds[:3]] + [x + 0.3 for x in data.bounds[3:]]
+    page.fill("#f-bounds", ", ".join(f"{x:.3f}" for x in box))
+    page.click("#create-scene")
+    page.wait_for_selector("#scene-panel:not([hidden])")
+    page.wait_for_selector(".scene.selected >> text=teapot-desk")
+    page.wait_for_selector("#status >> text=No scans yet")
+    _shot(page, "01-scene-created")
+
+    # upload the scans through the file input, with the dataset's sensor.json
+    files = [root / "sensor.json", *sorted((root / "scans").glob("*.npz"))]
+    page.set_input_files("#files", [str(f) for f in files])
+    n_scans = len(files) - 1
+    page.wait_for_function(
+        f"document.querySelectorAll('#uploads [data-state=stored]').length === {n_scans}",
+        timeout=60_000,
+    )
+    assert page.locator("#uploads [data-state=refused]").count() == 0
+    page.wait_for_selector(f"#scene-info[data-scans='{n_scans}']")
+    page.wait_for_selector("#jobs .job >> text=fusing scans")
+    _shot(page, "02-scans-uploaded")
+
+    # reconstruct: the page follows the job and draws the mesh when it is done
+    page.click("#reconstruct")
+    page.wait_for_function("document.querySelector('#status').dataset.faces", timeout=180_000)
+    page.wait_for_selector("#jobs .job.done >> text=reconstructing")
+    with client_of(server) as c:
+        scene_id = c.get("/v1/scenes").json()[0]["id"]
+        job = next(j for j in c.get("/v1/jobs").json() if j["kind"] == "reconstruct")
+        assert job["state"] == "done"
+        placements = c.get(f"/v1/scenes/{scene_id}/placements").json()
+    faces = int(page.get_attribute("#status", "data-faces"))
+    inferred = int(page.get_attribute("#status", "data-inferred"))
+    assert faces == job["result"]["faces"] == job["result"]["preview_faces"]  # small: whole
+    assert 0 < inferred < faces  # closed mode: the box around the object is inferred
+    assert len(placements) == n_scans and placements[0]["sensor"]["model"] == "pinhole"
+    _shot(page, "03-mesh-drawn")
+    drawn = _pixels(page)
+    assert drawn["nonBackground"] > 0.01 * drawn["total"], drawn  # the mesh is drawn
+
+    # inferred faces: shown, then hidden (the pixels change: fewer cover the canvas)
+    page.select_option("#inferred-mode", "show")
+    shown = _pixels(page)
+    _shot(page, "04-inferred-shown")
+    page.select_option("#inferred-mode", "hide")
+    hidden = _pixels(page)
+    assert hidden["checksum"] != shown["checksum"]
+    assert 0 < hidden["nonBackground"] < shown["nonBackground"], (hidden, shown)
+    _shot(page, "05-inferred-hidden")
+
+    # the up axis is remembered per scene
+    page.select_option("#up-axis", "y")
+    assert page.evaluate(f"localStorage.getItem('rangefuse-up-{scene_id}')") == "y"
+    page.select_option("#up-axis", "z")
+
+    # a slice through the middle of the object, with its legend
+    page.click("#toggle-slice")
+    page.wait_for_function(
+        "document.querySelector('#slice-img').complete && "
+        "document.querySelector('#slice-img').naturalWidth > 1"
+    )
+    assert page.get_attribute("#slice-img", "data-axis") == "z"
+    assert page.is_visible("#slice-legend") and "unknown" in page.inner_text("#slice-panel")
+    _shot(page, "06-slice")
+
+    # download the PLY: it parses, with the faces the job reported
+    with page.expect_download() as download:
+        page.click("#downloads [data-format=ply]")
+    saved = Path(download.value.path())
+    mesh = trimesh.load(io.BytesIO(saved.read_bytes()), file_type="ply", process=False)
+    assert len(mesh.faces) == faces
+    assert download.value.suggested_filename.endswith(".ply")
+    raw = mesh.metadata["_ply_raw"]["face"]["data"]
+    assert int(np.asarray(raw["inferred"]).sum()) == inferred
+
+    # delete the scene (a second click confirms)
+    page.click("#delete-scene")
+    page.click("#delete-scene")
+    page.wait_for_function("!document.querySelector('[data-scene]')")
+    _shot(page, "07-scene-deleted")
+    assert page.errors == []
+    page.close()
+
+
+def test_page_without_a_token_asks_for_one(server, browser):
+    page = browser.new_page()
+    page.goto(f"{server.url}/")
+    assert "API token" in page.inner_text("#auth")
+    assert "token" in page.inner_text("#status")
+    page.close()
+
+
+def test_vendored_three_is_served(server):
+    """three.js comes from the service itself (no CDN: the page works offline)."""
+    import httpx
+
+    html = httpx.get(f"{server.url}/").text
+    imports = json.loads(html.split('<script type="importmap">')[1].split("</script>")[0])
+    for url in imports["imports"].values():
+        if url.endswith("/"):
+            url += "OrbitControls.js"
+        r = httpx.get(server.url + url)
+        assert r.status_code == 200 and len(r.content) > 10_000, url

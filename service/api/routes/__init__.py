@@ -2,7 +2,7 @@
 
 from fastapi import APIRouter
 
-from . import health, jobs, reconstructions, scans, scenes, slices
+from . import health, jobs, reconstructions, scans, scenes, slices, viewer
 
 __all__ = ["ROUTERS"]
 
@@ -12,6 +12,7 @@ ROUTERS: tuple[APIRouter, ...] = (
     scans.router,
     reconstructions.router,
     slices.router,
+    viewer.router,
     jobs.router,
     health.router,
 )
