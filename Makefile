@@ -16,10 +16,11 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-# The REST service on 127.0.0.1:8000 with the embedded default store in ./data (the first
-# start creates and prints a token).
+# The REST service with the embedded default store in ./data (the first start creates and
+# prints a token): on 127.0.0.1:8000, or `make run PORT=8080 HOST=0.0.0.0`; without them,
+# RANGEFUSE_PORT and RANGEFUSE_HOST are read as `rangefuse serve` reads them.
 run: install
-	$(BIN)/rangefuse serve --data-dir data --host 127.0.0.1 --port 8000
+	$(BIN)/rangefuse serve --data-dir data $(if $(HOST),--host $(HOST)) $(if $(PORT),--port $(PORT))
 
 demo: install
 	$(BIN)/rangefuse synth object out/demo-object --views 12

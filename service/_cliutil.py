@@ -1,5 +1,9 @@
 """Helpers shared by the command-line modules: user errors, argument types, outputs, and the
-options of the declared parameters."""
+options of the declared parameters.
+
+Only the standard library is imported here at first: the engine, storage, trimesh and dask
+are imported inside the helpers that need them, so that ``rangefuse --help`` starts at once.
+"""
 
 from __future__ import annotations
 
@@ -10,16 +14,13 @@ import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from rangefuse.engine import DenseGrid, InvalidInputError, Scan
-from rangefuse.engine.budget import LIMITS, Limits
-from rangefuse.engine.errors import FarRangesError
-from rangefuse.engine.meshing import Mesh
-from rangefuse.engine.params import Param
-from rangefuse.storage import write_grid
-from rangefuse.storage.bounded import DEFAULT_MAX_PIXELS, LIMIT_SETTING
-from rangefuse.storage.meshes import MeshFormatError, mesh_format, write_mesh
+if TYPE_CHECKING:
+    from rangefuse.engine import DenseGrid, Scan
+    from rangefuse.engine.budget import Limits
+    from rangefuse.engine.meshing import Mesh
+    from rangefuse.engine.params import Param
 
 
 class CommandError(Exception):
@@ -59,6 +60,8 @@ def positive_int(text: str) -> int:
 def param_type(param: Param) -> Callable[[str], Any]:
     """The argparse ``type`` of a declared number: converts, then checks it as declared
     (``--rho: outlier probability must be in (0, 1/2), got 0.7``)."""
+    from rangefuse.engine import InvalidInputError
+
     integer = param.kind == "int"
 
     def convert(text: str) -> Any:
@@ -91,16 +94,21 @@ def add_param_option(parser: argparse.ArgumentParser, param: Param, note: str = 
     parser.add_argument(param.flag, **kwargs)
 
 
-def check_writable(path: Path, option: str) -> None:
+def check_writable(path: Path, option: str, make_parents: bool = False) -> None:
     """Fail before any work when ``path`` cannot be written.
 
-    Refuses an existing folder, a parent that is a file, and a folder that does not accept
-    files (probed with a temporary file that leaves nothing behind). Missing parent folders
-    are fine: the writers create them.
+    Refuses an existing folder, a parent that is a file, a missing parent folder (unless
+    ``make_parents``: a folder that the command creates, such as a dataset folder), and a
+    folder that does not accept files (probed with a temporary file that leaves nothing
+    behind).
     """
     if path.is_dir():
         raise CommandError(f"{option} {path}: is a directory")
     parent = path.parent
+    if not parent.exists() and not make_parents:
+        raise CommandError(
+            f"{option} {path}: no folder {parent} (create it first, or choose another path)"
+        )
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
     if not parent.is_dir():
@@ -114,6 +122,8 @@ def check_writable(path: Path, option: str) -> None:
 
 def check_outputs(args: argparse.Namespace) -> None:
     """Refuse unwritable ``--grid-out`` / ``-o`` paths and unknown mesh types before work."""
+    from rangefuse.storage.meshes import MeshFormatError, mesh_format
+
     if getattr(args, "grid_out", None) is not None:
         check_writable(args.grid_out, "--grid-out")
     if getattr(args, "output", None) is not None:
@@ -130,6 +140,9 @@ def write_outputs(
     extract_mesh: Callable[[bool, Sequence[float] | None], Mesh],
 ) -> None:
     """Write ``--grid-out`` and ``-o`` when asked (the region: ``--bounds`` if given)."""
+    from rangefuse.storage import write_grid
+    from rangefuse.storage.meshes import write_mesh
+
     if args.grid_out is not None:
         dense = to_dense(args.bounds)
         try:
@@ -197,6 +210,8 @@ def add_budget_options(parser: argparse.ArgumentParser, in_memory: bool = False)
     declared in ``engine/budget.py``, checked before any fusion (docs/budgets.md).
     ``in_memory``: the command can fuse in memory, where the bytes default to a share of
     the machine's memory (:func:`budget_limits`)."""
+    from rangefuse.engine.budget import LIMITS
+
     for limit in LIMITS.values():
         if limit.unit == "bytes":
             default = f"{limit.default / 2**30:g} GiB"
@@ -223,6 +238,8 @@ def budget_limits(args: argparse.Namespace, in_memory: bool = False) -> Limits:
     """The limits of ``--max-*`` (their defaults when not given), named by their options in
     messages. In memory (``fuse`` without ``--store``) the scene's voxels are held in this
     process: their bytes are limited to ``_MEMORY_SHARE`` of the machine's memory too."""
+    from rangefuse.engine.budget import LIMITS, Limits
+
     values = {}
     knobs = {name: "--" + name.replace("_", "-") for name in LIMITS}
     for limit in LIMITS.values():
@@ -257,6 +274,8 @@ def add_far_ranges_option(parser: argparse.ArgumentParser) -> None:
 def scan_read_options(args: argparse.Namespace) -> dict[str, Any]:
     """How scan files are read: the pixel limit ``RANGEFUSE_MAX_PIXELS`` (as the service
     reads it) and ``--accept-far-ranges``."""
+    from rangefuse.storage.bounded import DEFAULT_MAX_PIXELS, LIMIT_SETTING
+
     text = os.environ.get(LIMIT_SETTING)
     max_pixels = DEFAULT_MAX_PIXELS
     if text is not None:
@@ -287,6 +306,8 @@ def far_ranges_note(scan: Scan) -> str:
 
 def far_ranges_hint(args: argparse.Namespace, exc: Exception) -> str:
     """What to add to a refusal of far ranges: the option that overrides it, if any."""
+    from rangefuse.engine.errors import FarRangesError
+
     if not isinstance(exc, FarRangesError) or not hasattr(args, "accept_far_ranges"):
         return ""
     if getattr(args, "format", None):

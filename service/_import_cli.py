@@ -21,7 +21,7 @@ from rangefuse.storage.importers import KINDS, ImportOptions, ImportResult, read
 
 from ._cliutil import CommandError, check_outputs, finite_float, positive_float, positive_int
 
-__all__ = ["add_import_command", "read_source_for_fuse"]
+__all__ = ["add_source_options", "import_arguments", "read_source_for_fuse"]
 
 
 def _add_source_options(parser: argparse.ArgumentParser) -> None:
@@ -190,25 +190,22 @@ def _umask() -> int:
     return mask
 
 
-def add_import_command(sub: argparse._SubParsersAction) -> None:
-    """Register ``import`` and give ``fuse`` its ``--format KIND`` and source options."""
-    parser = sub.add_parser(
-        "import",
-        help="read scans in a foreign format (stanford, 7scenes, tum, redwood, kitti) into "
-        "a dataset folder",
-    )
+def import_arguments(parser: argparse.ArgumentParser) -> None:
+    """The arguments of ``import``."""
     parser.add_argument("kind", choices=KINDS, metavar="KIND", help=", ".join(KINDS))
     parser.add_argument("src", type=Path, metavar="SRC", help="source folder (or .conf file)")
     parser.add_argument("dst", type=Path, metavar="DST", help="dataset folder to write (new)")
     _add_source_options(parser)
     parser.set_defaults(func=_cmd_import)
-    fuse = sub.choices.get("fuse")
-    if fuse is not None:
-        fuse.add_argument(
-            "--format",
-            choices=KINDS,
-            default=None,
-            metavar="KIND",
-            help="DATASET is a source in this format (" + ", ".join(KINDS) + "), read directly",
-        )
-        _add_source_options(fuse)
+
+
+def add_source_options(fuse: argparse.ArgumentParser) -> None:
+    """Give ``fuse`` its ``--format KIND`` and the source options."""
+    fuse.add_argument(
+        "--format",
+        choices=KINDS,
+        default=None,
+        metavar="KIND",
+        help="DATASET is a source in this format (" + ", ".join(KINDS) + "), read directly",
+    )
+    _add_source_options(fuse)

@@ -8,14 +8,14 @@ import copy
 import logging
 import time
 from pathlib import Path
-from typing import Any
-
-from rangefuse.storage import Store
+from typing import TYPE_CHECKING, Any
 
 from ._cliutil import CommandError, positive_int
-from .accounts import Accounts, TokenIdError
 
-__all__ = ["add_serve_commands"]
+if TYPE_CHECKING:
+    from .accounts import Accounts
+
+__all__ = ["serve_arguments", "token_arguments"]
 
 
 def _settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
@@ -61,7 +61,9 @@ def _log_config() -> dict[str, Any]:
 
 def _cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
+    from rangefuse.storage import Store
 
+    from .accounts import Accounts
     from .app import create_app
 
     settings = _settings(args)
@@ -80,6 +82,10 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _accounts(args: argparse.Namespace) -> Accounts:
+    from rangefuse.storage import Store
+
+    from .accounts import Accounts
+
     with Store.open(_settings(args).data_dir, create=True) as store:
         return Accounts(store.catalog.path)
 
@@ -105,6 +111,8 @@ def _cmd_token_list(args: argparse.Namespace) -> int:
 
 
 def _cmd_token_revoke(args: argparse.Namespace) -> int:
+    from .accounts import TokenIdError
+
     with _accounts(args) as accounts:
         try:
             row = accounts.revoke_token(args.id)
@@ -114,11 +122,15 @@ def _cmd_token_revoke(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_serve_commands(sub: argparse._SubParsersAction) -> None:
-    serve = sub.add_parser("serve", help="run the REST service (uvicorn)")
+def serve_arguments(serve: argparse.ArgumentParser) -> None:
+    """The arguments of ``serve``."""
     serve.add_argument("--data-dir", type=Path, default=None, help="store (RANGEFUSE_DATA_DIR)")
-    serve.add_argument("--host", default=None, help="address (default 127.0.0.1)")
-    serve.add_argument("--port", type=positive_int, default=None, help="port (default 8000)")
+    serve.add_argument(
+        "--host", default=None, help="address to listen on (RANGEFUSE_HOST, default 127.0.0.1)"
+    )
+    serve.add_argument(
+        "--port", type=positive_int, default=None, help="port (RANGEFUSE_PORT, default 8000)"
+    )
     serve.add_argument(
         "--workers", type=positive_int, default=None,
         help="Dask worker processes to start for the jobs' units of work (RANGEFUSE_WORKERS, "
@@ -135,7 +147,9 @@ def add_serve_commands(sub: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     serve.set_defaults(func=_cmd_serve)
 
-    token = sub.add_parser("token", help="manage API tokens")
+
+def token_arguments(token: argparse.ArgumentParser) -> None:
+    """The actions of ``token``: create, list, revoke."""
     token_sub = token.add_subparsers(dest="token_command", required=True, metavar="ACTION")
     create = token_sub.add_parser("create", help="create a token for a tenant and print it")
     create.add_argument("--tenant", required=True, help="tenant name (for --admin: who uses it)")

@@ -39,7 +39,15 @@ from ._cliutil import (
 )
 from ._progress import ProgressBar
 
-__all__ = ["add_store_commands", "cache_option", "fuse_into_store", "workers_option"]
+__all__ = [
+    "add_arguments",
+    "cache_option",
+    "extract_arguments",
+    "fuse_into_store",
+    "info_arguments",
+    "remove_arguments",
+    "workers_option",
+]
 
 
 def _announce_recovery(scene: Scene) -> None:
@@ -219,11 +227,16 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_store_commands(sub: argparse._SubParsersAction) -> None:
-    """Register ``add``, ``remove``, ``extract`` and ``info``."""
-    add = sub.add_parser("add", help="add scan files to a store and fuse them")
-    add.add_argument("store", type=Path, metavar="DIR")
-    add.add_argument("scans", type=Path, nargs="+", metavar="SCAN.npz")
+def add_arguments(add: argparse.ArgumentParser) -> None:
+    """The arguments of ``add``."""
+    add.add_argument("store", type=Path, metavar="DIR", help="the store (made by fuse --store)")
+    add.add_argument(
+        "scans",
+        type=Path,
+        nargs="+",
+        metavar="SCAN.npz",
+        help="scan files (docs/formats.md), each named in the store by its file's stem",
+    )
     add.add_argument(
         "--sensor",
         type=Path,
@@ -238,15 +251,21 @@ def add_store_commands(sub: argparse._SubParsersAction) -> None:
     add.add_argument("--quiet", action="store_true", help="no progress bar")
     add.set_defaults(func=_cmd_add)
 
-    remove = sub.add_parser("remove", help="remove a scan from a store (exactly)")
-    remove.add_argument("store", type=Path, metavar="DIR")
-    remove.add_argument("scan_id", metavar="SCAN_ID")
+
+def remove_arguments(remove: argparse.ArgumentParser) -> None:
+    """The arguments of ``remove``."""
+    remove.add_argument("store", type=Path, metavar="DIR", help="the store")
+    remove.add_argument(
+        "scan_id", metavar="SCAN_ID", help="the scan to remove, as `rangefuse info` names it"
+    )
     cache_option(remove)
     workers_option(remove)
     remove.set_defaults(func=_cmd_remove)
 
-    extract = sub.add_parser("extract", help="write a store's mesh and/or dense grid")
-    extract.add_argument("store", type=Path, metavar="DIR")
+
+def extract_arguments(extract: argparse.ArgumentParser) -> None:
+    """The arguments of ``extract``."""
+    extract.add_argument("store", type=Path, metavar="DIR", help="the store")
     add_output_options(extract)
     extract.add_argument(
         "--bounds",
@@ -260,8 +279,10 @@ def add_store_commands(sub: argparse._SubParsersAction) -> None:
     workers_option(extract)
     extract.set_defaults(func=_cmd_extract)
 
-    info = sub.add_parser("info", help="describe a store: scans, tiles, bytes, version")
-    info.add_argument("store", type=Path, metavar="DIR")
+
+def info_arguments(info: argparse.ArgumentParser) -> None:
+    """The arguments of ``info``."""
+    info.add_argument("store", type=Path, metavar="DIR", help="the store")
     info.add_argument("--json", action="store_true", help="print JSON")
     info.set_defaults(func=_cmd_info)
 

@@ -1,4 +1,5 @@
-"""``rangefuse warmup``: compile every kernel into numba's cache ahead of time.
+"""``rangefuse warmup``: compile every kernel into numba's cache ahead of time; and the
+note that the command line prints when a kernel is compiled (:func:`announce_compilation`).
 
 Fuses and meshes tiny renderings of a small analytic scene with every sensor model, both
 certainty shapes, the filters and the discontinuity test, in mapping and closed mode, so
@@ -11,14 +12,50 @@ from __future__ import annotations
 import argparse
 import math
 import time
-
-import numpy as np
-from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Scan, Volume, sensor_from_dict
-from rangefuse.engine.synth import SceneBuilder, render
+from typing import TYPE_CHECKING, Any
 
 from . import numba_cache_dir
+from ._progress import note
 
-__all__ = ["add_warmup_command", "warm_kernels"]
+if TYPE_CHECKING:
+    import numpy as np
+
+__all__ = ["COMPILING", "add_warmup_command", "announce_compilation", "warm_kernels"]
+
+#: What the command line prints when numba compiles a kernel that its cache does not hold.
+COMPILING = "compiling kernels, first run only"
+
+
+def announce_compilation() -> None:
+    """Print a note on standard error the first time this process compiles a kernel: numba
+    compiles one only when its cache (``NUMBA_CACHE_DIR``) holds no build of it for these
+    argument types, so a cold cache is seen exactly when it costs time. Loading from the
+    cache prints nothing."""
+    global _listening
+    if _listening:
+        return
+    from numba.core import event
+
+    class _Compiling(event.Listener):
+        def on_start(self, ev: Any) -> None:
+            global _listening
+            event.unregister("numba:compile", self)  # once
+            _listening = False
+            note(
+                f"{COMPILING} (up to a few minutes; cached in {numba_cache_dir()}; "
+                "`rangefuse warmup` compiles them all ahead of time)"
+            )
+
+        def on_end(self, ev: Any) -> None:
+            pass
+
+    event.register("numba:compile", _Compiling())
+    _listening = True
+
+
+#: Whether :func:`announce_compilation` waits for a compilation to announce.
+_listening = False
+
 
 _BOUNDS = (-0.4, -0.4, -0.4, 0.4, 0.4, 0.4)
 #: One small sensor per model and range convention, and where it looks from.
@@ -35,7 +72,7 @@ _SENSORS = {
     ),
     "spherical": (
         {"model": "spherical", "width": 90, "height": 12, "az_min": -math.pi, "az_max": math.pi,
-         "wrap": True, "elevations": list(np.linspace(0.5, -0.5, 12)), "max_range": 3.0},
+         "wrap": True, "elevations": [0.5 - k / 11 for k in range(12)], "max_range": 3.0},
         "xfwd",
     ),
     "spherical, even rows": (
@@ -65,6 +102,8 @@ _SENSORS = {
 
 def _pose(eye: np.ndarray, frame: str) -> np.ndarray:
     """Looking at the origin from ``eye``: OpenCV axes (``cv``) or x forward (``xfwd``)."""
+    import numpy as np
+
     forward = -eye / np.linalg.norm(eye)
     side = np.cross(forward, (0.0, 0.0, 1.0))
     side /= np.linalg.norm(side)
@@ -80,6 +119,10 @@ def _pose(eye: np.ndarray, frame: str) -> np.ndarray:
 
 def warm_kernels() -> int:
     """Compile (or load) every kernel; returns how many fusions it ran."""
+    import numpy as np
+    from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Scan, Volume, sensor_from_dict
+    from rangefuse.engine.synth import SceneBuilder, render
+
     scene = (
         SceneBuilder()
         .add_box((0.05, -0.05, -0.1), (0.3, 0.25, 0.2), 0.4)
@@ -115,8 +158,6 @@ def _cmd_warmup(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_warmup_command(sub: argparse._SubParsersAction) -> None:
-    warmup = sub.add_parser(
-        "warmup", help="compile every kernel into numba's cache (first jobs start at once)"
-    )
+def add_warmup_command(warmup: argparse.ArgumentParser) -> None:
+    """The arguments of ``warmup`` (none)."""
     warmup.set_defaults(func=_cmd_warmup)

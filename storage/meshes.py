@@ -78,9 +78,10 @@ def mesh_bytes(mesh: Mesh, fmt: str) -> bytes:
     PLY, OBJ and GLB."""
     if fmt not in MESH_FORMATS:
         raise MeshFormatError(f"unknown mesh format {fmt!r}; use one of {', '.join(MESH_FORMATS)}")
-    tm = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, process=False)
-    if fmt != "stl":
-        tm.vertex_normals = vertex_normals(mesh.vertices, mesh.faces)
+    normals = None if fmt == "stl" else vertex_normals(mesh.vertices, mesh.faces)
+    tm = trimesh.Trimesh(
+        vertices=mesh.vertices, faces=mesh.faces, vertex_normals=normals, process=False
+    )
     if fmt == "ply":
         tm.face_attributes["inferred"] = mesh.inferred.astype(np.uint8)
         data = tm.export(file_type="ply", encoding="binary", vertex_normal=True)

@@ -116,7 +116,7 @@ def test_rest_request_and_response_fields(name: str) -> None:
 
 def test_rest_models_hold_only_declared_parameters() -> None:
     assert set(NoiseIn.model_fields) == {p.name for p in params_of("noise")}
-    assert set(SceneIn.model_fields) - {"name", "noise"} == {
+    assert set(SceneIn.model_fields) - {"name", "noise", "sensor"} == {
         p.name for p in PARAMS.values() if p.group != "noise"
     }
 

@@ -9,6 +9,7 @@ only the noise depends on the seed.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -97,6 +98,7 @@ def make_dataset(
     noise: NoiseSpec | None = None,
     seed: int = 0,
     length_m: float | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> SyntheticDataset:
     """Render one of the synthetic scenes.
 
@@ -117,6 +119,8 @@ def make_dataset(
         on it.
     length_m : float or None
         Street length in metres (default 40); street only.
+    progress : callable or None
+        ``progress(done, total)`` is called after each scan is rendered.
 
     Returns
     -------
@@ -161,6 +165,8 @@ def make_dataset(
         if noise != NoiseSpec():
             range_m = apply_noise(range_m, noise, sensor, rng)
         scans.append((f"scan_{k:04d}", Scan(range_m=range_m, T_W_S=T_W_S, sensor=sensor)))
+        if progress is not None:
+            progress(k + 1, len(poses))
     x0, y0, z0, x1, y1, z1 = scene.bounds()
     bounds = (x0 - margin, y0 - margin, z0 - margin, x1 + margin, y1 + margin, z1 + margin)
     return SyntheticDataset(name=name, scene=scene, sensor=sensor, scans=scans, bounds=bounds)
