@@ -9,7 +9,9 @@ collapse (``fast-simplification``, a maintained binding of Sven Forstmann's
 Fast-Quadric-Mesh-Simplification); the seam between the two parts may open by a fraction of
 a simplified edge, which is invisible at viewing distance.
 
-The file is little-endian and 4-byte aligned, made to be turned into WebGL buffers without
+The file is one or two levels, the preview then (when the preview has more than
+:data:`COARSE_FACES` faces) a coarser one that the page draws while the camera moves. Each
+level is little-endian and 4-byte aligned, made to be turned into WebGL buffers without
 parsing (docs/webapp.md)::
 
     magic  b"RFPV0001"                       8 bytes
@@ -32,6 +34,7 @@ from rangefuse.storage.units import Runner
 from .cluster import RunInterruptedError
 
 __all__ = [
+    "COARSE_FACES",
     "PREVIEW_FACES",
     "PreviewUnit",
     "encode_preview",
@@ -41,8 +44,12 @@ __all__ = [
     "simplify_parts",
 ]
 
-#: Most faces in a preview (the page stays above 20 frames/s with software WebGL).
+#: Most faces in a preview.
 PREVIEW_FACES = 300_000
+#: Most faces of the preview's coarse level, drawn while the camera moves: software WebGL
+#: (SwiftShader on 2 cores) draws about 2 M triangles/s, so 300 k faces give 6 frames/s and
+#: 60 k about 20 (docs/webapp.md).
+COARSE_FACES = 60_000
 
 log = logging.getLogger("rangefuse.previews")
 
@@ -157,11 +164,22 @@ def encode_preview(
     return header + positions.tobytes() + indices.tobytes()
 
 
-def preview_of(vertices: np.ndarray, faces: np.ndarray, inferred: np.ndarray,
-               max_faces: int = PREVIEW_FACES) -> bytes:  # fmt: skip
-    """The preview file of a mesh."""
+def preview_of(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    inferred: np.ndarray,
+    max_faces: int = PREVIEW_FACES,
+    coarse_faces: int = COARSE_FACES,
+) -> bytes:
+    """The preview file of a mesh: the preview, then its coarse level when it has more than
+    ``coarse_faces`` faces."""
     positions, indices, n_measured = simplify_parts(vertices, faces, inferred, max_faces)
-    return encode_preview(positions, indices, n_measured, len(faces))
+    payload = encode_preview(positions, indices, n_measured, len(faces))
+    if len(indices) > coarse_faces:
+        flags = np.arange(len(indices)) >= n_measured
+        coarse = simplify_parts(positions, indices, flags, coarse_faces)
+        payload += encode_preview(*coarse, len(faces))
+    return payload
 
 
 @dataclass(frozen=True)

@@ -192,3 +192,20 @@ def test_vendored_three_is_served(server):
             url += "OrbitControls.js"
         r = httpx.get(server.url + url)
         assert r.status_code == 200 and len(r.content) > 10_000, url
+
+
+@pytest.mark.slow
+def test_viewer_fps_benchmark_smoke():
+    """benchmarks/viewer_fps.py runs and prints its table (numbers: docs/webapp.md)."""
+    import subprocess
+    import sys
+
+    bench = Path(__file__).resolve().parents[1] / "benchmarks" / "viewer_fps.py"
+    out = subprocess.run(
+        [sys.executable, str(bench), "--quick"], capture_output=True, text=True, timeout=600
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    lines = out.stdout.splitlines()
+    rows = [line.split() for line in lines if line.startswith(("preview", "full"))]
+    assert [r[0] for r in rows] == ["preview", "preview", "full", "full"]
+    assert all(float(r[-1]) > 0 for r in rows)  # frames were drawn

@@ -62,8 +62,10 @@ def get_preview(
     if cached.is_file():
         payload = cached.read_bytes()
     elif faces <= PREVIEW_FACES:  # small enough to send whole: no simplification to run
-        with np.load(Path(mesh_path)) as data:
-            payload = preview_of(data["vertices"], data["faces"], data["inferred"])
+        with np.load(Path(mesh_path)) as data:  # (nor a coarse level: that is the job's)
+            payload = preview_of(
+                data["vertices"], data["faces"], data["inferred"], coarse_faces=PREVIEW_FACES
+            )
     else:
         raise HTTPException(
             409,

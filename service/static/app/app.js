@@ -219,19 +219,29 @@ async function loadMesh(fit = false) {
   try {
     setStatus(full ? "loading the full mesh…" : "loading the mesh…");
     const r = await api(path);
-    const etag = r.headers.get("ETag");
+    const etag = r.headers.get("ETag") || "";
     const data = full ? parsePly(await r.arrayBuffer()) : decodePreview(await r.arrayBuffer());
+    if (!full) state.preview = data;
+    else if (!state.preview || state.previewEtag !== etag.replace("-ply", "-preview")) {
+      // the preview's levels, drawn while the camera moves over the full mesh
+      state.preview = decodePreview(await (await api(`/v1/scenes/${state.selected}/preview`)).arrayBuffer());
+    }
+    state.previewEtag = full ? etag.replace("-ply", "-preview") : etag;
     state.meshEtag = etag;
     const firstMesh = !viewer.mesh;
-    viewer.setMesh(data, { keepView: true });
+    const coarse = full ? (state.preview.coarse || state.preview) : data.coarse;
+    viewer.setMesh(data, { keepView: true, coarse });
     viewer.setPoses(state.placements, $("show-scans").checked);
     if (fit || firstMesh) viewer.setUp($("up-axis").value);  // and fits the view
     const inferred = data.nFaces - data.nMeasured;
     const what = full ? `full mesh, ${fmtInt(data.nFaces)} faces`
       : data.nFaces < data.sourceFaces ? `preview of ${fmtInt(data.nFaces)} faces (the mesh has ${fmtInt(data.sourceFaces)})`
       : `${fmtInt(data.nFaces)} faces`;
-    setStatus(`${state.scene ? state.scene.name : "scene"}: ${what}, ${fmtInt(inferred)} inferred. Drag to orbit, right-drag to pan, wheel to zoom.`);
+    const moving = coarse ? ` (${fmtInt(coarse.nFaces)} while moving)` : "";
+    setStatus(`${state.scene ? state.scene.name : "scene"}: ${what}${moving}, ${fmtInt(inferred)} inferred. Drag to orbit, right-drag to pan, wheel to zoom.`);
     $("status").dataset.faces = data.nFaces;
+    $("status").dataset.full = full ? "1" : "0";
+    $("status").dataset.coarseFaces = coarse ? coarse.nFaces : data.nFaces;
     $("status").dataset.sourceFaces = data.sourceFaces;
     $("status").dataset.inferred = inferred;
     renderDownloads(true);

@@ -18,18 +18,24 @@ const UP = {
   "-z": new THREE.Euler(Math.PI / 2, 0, 0),
 };
 
-// The preview file (service/previews.py): "RFPV0001", 4 uint32, float32 positions,
-// uint32 indices with the measured faces first.
+// The preview file (service/previews.py): one or two levels (the preview, then a coarse
+// level drawn while the camera moves), each "RFPV0001", 4 uint32, float32 positions, uint32
+// indices with the measured faces first.
 export function decodePreview(buf) {
-  const magic = new TextDecoder().decode(new Uint8Array(buf, 0, 8));
-  if (magic !== "RFPV0001") throw new Error("the preview is not in the expected format");
-  const head = new Uint32Array(buf, 8, 4);
-  const [nv, nf, nMeasured, sourceFaces] = head;
-  return {
-    positions: new Float32Array(buf, 24, nv * 3),
-    indices: new Uint32Array(buf, 24 + nv * 12, nf * 3),
-    nFaces: nf, nMeasured, sourceFaces, normals: null,
-  };
+  const levels = [];
+  let o = 0;
+  while (o < buf.byteLength) {
+    const magic = new TextDecoder().decode(new Uint8Array(buf, o, 8));
+    if (magic !== "RFPV0001") throw new Error("the preview is not in the expected format");
+    const [nv, nf, nMeasured, sourceFaces] = new Uint32Array(buf, o + 8, 4);
+    levels.push({
+      positions: new Float32Array(buf, o + 24, nv * 3),
+      indices: new Uint32Array(buf, o + 24 + nv * 12, nf * 3),
+      nFaces: nf, nMeasured, sourceFaces, normals: null,
+    });
+    o += 24 + nv * 12 + nf * 12;
+  }
+  return { ...levels[0], coarse: levels[1] || null };
 }
 
 const PLY_TYPES = {
@@ -122,11 +128,16 @@ export class Viewer {
     this.camera.add(headlight);
     this.controls = new OrbitControls(this.camera, this.renderer.domElement);
     this.controls.addEventListener("change", () => this.requestRender());
+    this.moving = false;  // the user drags or zooms
+    this.lod = true;  // draw the coarse level while moving
+    this.controls.addEventListener("start", () => { this.moving = true; });
+    this.controls.addEventListener("end", () => { this.moving = false; this.requestRender(); });
     this.materials = [
       new THREE.MeshLambertMaterial({ color: MEASURED, side: THREE.DoubleSide }),
       new THREE.MeshLambertMaterial({ color: INFERRED, side: THREE.DoubleSide }),
     ];
     this.mesh = null;
+    this.coarse = null;
     this.poses = null;
     this.inferredMode = "dim";
     this.frames = 0;
@@ -150,18 +161,21 @@ export class Viewer {
   }
 
   render() {
+    if (this.coarse) {  // the coarse level while the camera moves (docs/webapp.md)
+      this.coarse.visible = this.moving && this.lod;
+      this.mesh.visible = !this.coarse.visible;
+    }
     this.renderer.render(this.scene, this.camera);
     this.frames++;
   }
 
   clear() {
-    if (this.mesh) { this.root.remove(this.mesh); this.mesh.geometry.dispose(); this.mesh = null; }
+    for (const m of [this.mesh, this.coarse]) if (m) { this.root.remove(m); m.geometry.dispose(); }
+    this.mesh = this.coarse = null;
     this.requestRender();
   }
 
-  // data: {positions, indices, normals?, nMeasured} (decodePreview or parsePly)
-  setMesh(data, { keepView = false } = {}) {
-    this.clear();
+  _build(data) {
     const g = new THREE.BufferGeometry();
     g.setAttribute("position", new THREE.BufferAttribute(data.positions, 3));
     g.setIndex(new THREE.BufferAttribute(data.indices, 1));
@@ -171,8 +185,17 @@ export class Viewer {
     if (m > 0) g.addGroup(0, m, 0);
     if (nIdx > m) g.addGroup(m, nIdx - m, 1);
     g.computeBoundingSphere();
-    this.mesh = new THREE.Mesh(g, this.materials);
-    this.root.add(this.mesh);
+    const mesh = new THREE.Mesh(g, this.materials);
+    this.root.add(mesh);
+    return mesh;
+  }
+
+  // data: {positions, indices, normals?, nMeasured} (decodePreview or parsePly); coarse:
+  // a lighter level of the same surface, drawn instead while the camera moves.
+  setMesh(data, { keepView = false, coarse = null } = {}) {
+    this.clear();
+    this.mesh = this._build(data);
+    this.coarse = coarse ? this._build(coarse) : null;
     this.setInferred(this.inferredMode);
     if (!keepView) this.fit();
     this.requestRender();
@@ -273,12 +296,15 @@ export class Viewer {
   }
 
   // Orbit the camera around its target for `seconds`, one step per animation frame, and
-  // count the frames drawn (benchmarks/viewer_fps.py).
-  orbit(seconds = 5) {
+  // count the frames drawn (benchmarks/viewer_fps.py). lod: draw the coarse level while
+  // moving, as when a person drags.
+  orbit(seconds = 5, lod = true) {
     return new Promise(resolve => {
       const target = this.controls.target.clone();
       const offset = this.camera.position.clone().sub(target);
       const axis = new THREE.Vector3(0, 1, 0);
+      const savedLod = this.lod;
+      this.lod = lod; this.moving = true;
       let frames = 0, t0 = null;
       const step = now => {
         if (t0 === null) t0 = now;
@@ -287,8 +313,11 @@ export class Viewer {
         this.camera.lookAt(target);
         this.render();
         frames++;
-        if (now - t0 < seconds * 1000) requestAnimationFrame(step);
-        else resolve({ frames, seconds: (now - t0) / 1000, fps: frames / ((now - t0) / 1000) });
+        if (now - t0 < seconds * 1000) { requestAnimationFrame(step); return; }
+        const drawn = this.coarse && this.coarse.visible ? this.coarse : this.mesh;
+        this.lod = savedLod; this.moving = false; this.requestRender();
+        resolve({ frames, seconds: (now - t0) / 1000, fps: frames / ((now - t0) / 1000),
+                  faces: drawn ? drawn.geometry.index.count / 3 : 0 });
       };
       requestAnimationFrame(step);
     });
