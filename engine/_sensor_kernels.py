@@ -64,31 +64,58 @@ def _column_from_azimuth(params, az):
     return a / params[P_DAZ]
 
 
+#: Bins of the elevation table's index per row (see :func:`elevation_table`).
+TABLE_BINS_PER_ROW = 8
+
+
+def elevation_table(elevations: np.ndarray) -> np.ndarray:
+    """The table kernels take for a spherical sensor with per-row elevations.
+
+    ``[e_0 .. e_{H-1}, inv_w, n_bins, start_0 .. start_{n_bins - 1}]``: the H elevations
+    (decreasing), then an index over ``n_bins`` equal bins of elevation from ``e_0``
+    downwards (``inv_w`` bins per radian): ``start_b`` is the last row whose elevation is at
+    or above the top of bin ``b``. :func:`_row_from_table` starts there and steps to the
+    row a binary search finds (the same row, so the same ``v``), one or two steps instead
+    of ``log2(H)`` unpredictable branches: about a third of a LiDAR voxel's projection.
+    """
+    e = np.ascontiguousarray(elevations, np.float64)
+    n = e.shape[0]
+    n_bins = TABLE_BINS_PER_ROW * n
+    span = e[0] - e[n - 1]
+    inv_w = n_bins / span
+    tops = e[0] - np.arange(n_bins) / inv_w
+    # last row with e[row] >= top: e is decreasing, so count the rows at or above it
+    starts = np.searchsorted(-e, -tops, side="right") - 1
+    starts = np.clip(starts, 0, n - 2).astype(np.float64)
+    return np.concatenate([e, [inv_w, float(n_bins)], starts])
+
+
 @njit(cache=True)
-def _row_from_table(table, el):
-    # table is decreasing; find v0 with table[v0] >= el >= table[v0 + 1],
-    # extrapolating linearly from the end intervals.
-    n = table.shape[0]
+def _row_from_table(table, n, el):
+    # table holds n decreasing elevations (then its index: elevation_table); find v0 with
+    # table[v0] >= el > table[v0 + 1] (the row a binary search finds), extrapolating
+    # linearly from the end intervals.
+    if el != el:
+        return math.nan  # as the binary search gave: v0 = 0, then NaN
     if el >= table[0]:
         v0 = 0
     elif el <= table[n - 1]:
         v0 = n - 2
     else:
-        lo = 0
-        hi = n - 1
-        while hi - lo > 1:
-            mid = (lo + hi) // 2
-            if table[mid] >= el:
-                lo = mid
-            else:
-                hi = mid
-        v0 = lo
+        n_bins = int(table[n + 1])
+        b = int((table[0] - el) * table[n])  # el < table[0]: b >= 0
+        if b > n_bins - 1:
+            b = n_bins - 1
+        v0 = int(table[n + 2 + b])
+        while table[v0 + 1] >= el:  # stops by n - 2: table[n - 1] < el
+            v0 += 1
+        while table[v0] < el:  # stops by 0: table[0] > el
+            v0 -= 1
     return v0 + (table[v0] - el) / (table[v0] - table[v0 + 1])
 
 
 @njit(cache=True)
-def _elevation_from_table(table, v):
-    n = table.shape[0]
+def _elevation_from_table(table, n, v):
     v0 = int(math.floor(v))
     if v0 < 0:
         v0 = 0
@@ -119,7 +146,7 @@ def project_point(kind, params, table, x, y, z):
         u = _column_from_azimuth(params, math.atan2(y, x))
         el = math.atan2(z, rho)
         if params[P_HAS_TABLE] != 0.0:
-            v = _row_from_table(table, el)
+            v = _row_from_table(table, int(params[P_H]), el)
         else:
             v = (params[P_EL_MAX] - el) / params[P_DEL]
         return u, v, d
@@ -174,7 +201,7 @@ def unproject_point(kind, params, table, u, v, d):
     if kind == SPHERICAL:
         az = params[P_AZ_MIN] + u * params[P_DAZ]
         if params[P_HAS_TABLE] != 0.0:
-            el = _elevation_from_table(table, v)
+            el = _elevation_from_table(table, int(params[P_H]), v)
         else:
             el = params[P_EL_MAX] - v * params[P_DEL]
         c = math.cos(el)

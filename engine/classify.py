@@ -248,8 +248,8 @@ def _classify_tile(
             el_lo = el_c - theta
             if kind == _k.SPHERICAL:
                 if params[_k.P_HAS_TABLE] != 0.0:
-                    v_lo = _k._row_from_table(table, el_hi)
-                    v_hi = _k._row_from_table(table, el_lo)
+                    v_lo = _k._row_from_table(table, int(H), el_hi)
+                    v_hi = _k._row_from_table(table, int(H), el_lo)
                 else:
                     v_lo = (params[_k.P_EL_MAX] - el_hi) / params[_k.P_DEL]
                     v_hi = (params[_k.P_EL_MAX] - el_lo) / params[_k.P_DEL]

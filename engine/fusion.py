@@ -33,6 +33,7 @@ from .grid import GridSpec
 from .meshing import Mesh, extract_mesh
 from .planner import Sphere, plan_add, plan_remove
 from .scans import FusionParams, PreparedScan, Scan, prepare_scan
+from .spatial import SphereIndex
 from .volume import DenseGrid, MemoryTileStore, TileStore, dense_logodds
 
 __all__ = ["IntegrationReport", "Volume", "integrate_seen", "integrate_tiles"]
@@ -270,7 +271,8 @@ class Volume:
             raise InvalidInputError("tile_size", "store and grid disagree on the tile size")
         self._scans: dict[str, Scan] = {}
         self._prepared: dict[str, PreparedScan] = {}
-        self._spheres: dict[str, Sphere] = {}  # computed when a later batch needs them
+        self._spheres: dict[str, Sphere] = {}
+        self._near = SphereIndex()  # the fused scans' spheres, for the backfill's search
 
     # --- scans --------------------------------------------------------------------------------
     @property
@@ -313,16 +315,20 @@ class Volume:
             if not isinstance(scan, Scan):
                 raise InvalidInputError("scan", f"must be a Scan, got {type(scan).__name__}")
             new_ids.append(scan_id)
-        old_ids = list(self._scans)
         for scan_id, scan in items:
             self._scans[scan_id] = scan
         try:
-            return self._integrate_new(old_ids, new_ids, progress)
+            report = self._integrate_new(new_ids, progress)
         except BaseException:
             for scan_id in new_ids:
                 self._scans.pop(scan_id, None)
                 self._prepared.pop(scan_id, None)
+                self._spheres.pop(scan_id, None)
             raise
+        for scan_id in new_ids:
+            sphere = self._sphere(scan_id)
+            self._near.add(scan_id, sphere.origin, sphere.radius_m)
+        return report
 
     def _sphere(self, scan_id: str) -> Sphere:
         sphere = self._spheres.get(scan_id)
@@ -333,14 +339,12 @@ class Volume:
             self._spheres[scan_id] = sphere
         return sphere
 
-    def _integrate_new(
-        self, old_ids: list[str], new_ids: list[str], progress: Progress | None
-    ) -> IntegrationReport:
-        # the plan (engine.planner): allocate, then each scan into the tiles it has in view
+    def _integrate_new(self, new_ids: list[str], progress: Progress | None) -> IntegrationReport:
+        # the plan (engine.planner): allocate, then each scan into the tiles it has in view;
+        # the earlier scans near the created tiles come from the index of their spheres
         scratch = Scratch()  # working arrays, reused from scan to scan
-        earlier = (self._sphere(scan_id) for scan_id in old_ids)
         plan = plan_add(
-            self.grid, self.store.keys(), new_ids, earlier, self._prepare, scratch=scratch
+            self.grid, self.store.keys(), new_ids, self._near, self._prepare, scratch=scratch
         )
         keys, created = plan.keys, plan.created
         T = self.grid.tile_size
@@ -406,6 +410,7 @@ class Volume:
         del self._scans[scan_id]
         self._prepared.pop(scan_id, None)
         self._spheres.pop(scan_id, None)
+        self._near.remove(scan_id)
         return IntegrationReport(
             changed=keys[rows][informed > 0], deleted=plan.deleted,
             voxel_updates=int(informed.sum()), scans=1,

@@ -41,9 +41,10 @@ import numpy as np
 
 from ._memory import Scratch
 from .allocation import tiles_touched
-from .classify import FREE, OUT, classify_tiles
+from .classify import FREE, OUT, classify_tiles, reach_radius
 from .grid import GridSpec, pack_keys, unique_keys
 from .scans import PreparedScan
+from .spatial import SphereIndex, TileIndex, box_distance, reaches, shift_for
 
 __all__ = [
     "Plan",
@@ -181,17 +182,9 @@ class Plan:
         ]
 
 
-def _box_distance(lo: np.ndarray, hi: np.ndarray, origin: Sequence[float]) -> np.ndarray:
-    """Distance from ``origin`` to each box ``[lo, hi]`` (float64 (n, 3) each)."""
-    o = np.asarray(origin, np.float64)
-    return np.sqrt(np.sum(np.maximum(np.maximum(lo - o, o - hi), 0.0) ** 2, axis=-1))
-
-
 def _reaches(sphere: Sphere, distance: np.ndarray, tile_m: float) -> np.ndarray:
     """The sphere's test (with one tile of slack) against distances to boxes."""
-    if not math.isfinite(sphere.radius_m):
-        return np.ones(distance.shape, np.bool_)
-    return distance <= sphere.radius_m + tile_m
+    return reaches(sphere.radius_m, distance, tile_m)
 
 
 def scans_near(spheres: Iterable[Sphere], keys: np.ndarray, grid: GridSpec) -> list[str]:
@@ -202,14 +195,14 @@ def scans_near(spheres: Iterable[Sphere], keys: np.ndarray, grid: GridSpec) -> l
     tile_m = grid.tile_size_m
     lo = keys.min(axis=0) * tile_m
     hi = (keys.max(axis=0) + 1) * tile_m
-    return [s.scan_id for s in spheres if _reaches(s, _box_distance(lo, hi, s.origin), tile_m)]
+    return [s.scan_id for s in spheres if _reaches(s, box_distance(lo, hi, s.origin), tile_m)]
 
 
 def tiles_near(sphere: Sphere, keys: np.ndarray, grid: GridSpec) -> np.ndarray:
     """Mask of the tiles ``keys`` (int64 (n, 3)) whose box the sphere meets."""
     tile_m = grid.tile_size_m
     lo = keys * tile_m
-    return _reaches(sphere, _box_distance(lo, lo + tile_m, sphere.origin), tile_m)
+    return _reaches(sphere, box_distance(lo, lo + tile_m, sphere.origin), tile_m)
 
 
 def _isin(keys: np.ndarray, among: np.ndarray) -> np.ndarray:
@@ -227,33 +220,59 @@ def plan_add(
     grid: GridSpec,
     existing: np.ndarray,
     new: Sequence[str],
-    earlier: Iterable[Sphere],
+    earlier: Iterable[Sphere] | SphereIndex,
     load: Loader,
     *,
     halo: int = 0,
     scratch: Scratch | None = None,
 ) -> Plan:
     """Plan the fusion of the scans ``new`` into a volume whose tiles are ``existing``
-    (int64 (n, 3), sorted) and whose earlier scans are bounded by ``earlier``: rules 1 to 4.
+    (int64 (n, 3), sorted) and whose earlier scans are bounded by ``earlier`` (spheres, or a
+    :class:`~engine.spatial.SphereIndex` of them): rules 1 to 4.
 
     ``load`` gives a scan prepared for the kernels (the new ones are allocated here, one at
     a time; the earlier ones are only loaded when :meth:`Plan.views` reaches them).
+
+    A new scan's candidates are the tiles its sphere reaches (:func:`tiles_near`, through a
+    :class:`~engine.spatial.TileIndex`): it informs nothing farther, so the tiles beyond
+    were out of its view. Its work is then what it can reach, not the whole map.
     """
     existing = np.asarray(existing, np.int64).reshape(-1, 3)
-    touched = {scan_id: tiles_touched(load(scan_id), grid, scratch) for scan_id in new}
+    touched: dict[str, np.ndarray] = {}
+    spheres: dict[str, Sphere] = {}
+    for scan_id in new:
+        scan = load(scan_id)
+        touched[scan_id] = tiles_touched(scan, grid, scratch)
+        spheres[scan_id] = Sphere(scan_id, _origin(scan), reach_radius(scan))
     all_touched = unique_keys(np.concatenate([_NO_KEYS, *touched.values()]))
     created_keys = all_touched[~_isin(all_touched, existing)]
     keys = unique_keys(np.concatenate([existing, created_keys]))
     created = _isin(keys, created_keys)
-    everything = np.arange(len(keys), dtype=np.int64)
-    steps = [Step(scan_id, everything) for scan_id in new]
+    tile_m = grid.tile_size_m
+    radii = [s.radius_m for s in spheres.values() if math.isfinite(s.radius_m)]
+    index = TileIndex(keys, shift_for(max(radii, default=math.inf), tile_m))
+    steps = [
+        Step(scan_id, index.rows_near(spheres[scan_id].origin, spheres[scan_id].radius_m, tile_m))
+        for scan_id in new
+    ]
     if len(created_keys):
         exclude = set(new)
         backfill = np.flatnonzero(created)
-        nearby = scans_near((s for s in earlier if s.scan_id not in exclude), created_keys, grid)
+        if isinstance(earlier, SphereIndex):
+            lo = created_keys.min(axis=0) * tile_m
+            hi = (created_keys.max(axis=0) + 1) * tile_m
+            nearby = [s for s in earlier.near_box(lo, hi, tile_m) if s not in exclude]
+        else:
+            near = (s for s in earlier if s.scan_id not in exclude)
+            nearby = scans_near(near, created_keys, grid)
         steps += [Step(scan_id, backfill) for scan_id in nearby]
     owned = {scan_id: _rows_of(keys, tiles) for scan_id, tiles in touched.items()}
     return Plan(grid, keys, created, steps, halo, owned)
+
+
+def _origin(scan: PreparedScan) -> tuple[float, float, float]:
+    o = scan.origin_W
+    return float(o[0]), float(o[1]), float(o[2])
 
 
 def plan_remove(

@@ -325,7 +325,7 @@ class SphericalSensor(Sensor):
     def _table(self) -> np.ndarray:
         if self.elevations is None:
             return _k.empty_table()
-        return np.asarray(self.elevations, dtype=np.float64)
+        return _k.elevation_table(np.asarray(self.elevations, dtype=np.float64))
 
 
 @dataclass(frozen=True, kw_only=True)
