@@ -314,7 +314,7 @@ _COMMANDS: dict[str, tuple[str, str, str]] = {
 }
 
 #: Commands that run kernels: the first compilation in the process is announced.
-_KERNEL_COMMANDS = frozenset({"synth", "fuse", "add", "remove", "extract"})
+_KERNEL_COMMANDS = frozenset({"synth", "fuse", "add", "remove", "extract", "import"})
 
 #: A negative number, exponent included (argparse's own pattern misses ``-1e9``, which it
 #: then takes for an option).
