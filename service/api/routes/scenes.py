@@ -58,7 +58,7 @@ def _scene_sensor(body: SceneIn) -> dict[str, Any] | None:
         return sensor_from_dict(body.sensor).to_dict()
     except InvalidSensorError:
         raise
-    except (TypeError, ValueError, KeyError, OverflowError) as exc:
+    except (TypeError, ValueError, KeyError, AttributeError, OverflowError, RecursionError) as exc:
         raise InvalidSensorError("sensor", f"not a valid sensor ({exc})") from None
 
 
