@@ -5,9 +5,10 @@ Starts ``rangefuse serve`` on loopback with a fresh store, fuses the synthetic r
 (a mapping scene; ``--views`` sets how much of it is seen, hence the faces), lets the
 reconstruction job make its preview, then opens the page in Chromium and orbits the camera
 one step per animation frame for ``--seconds`` (viewer.orbit: requestAnimationFrame, a
-programmatic rotation, a render each frame), twice per mesh: drawing the preview's coarse
-level while moving, as the page does when a person drags (the mesh shown at rest comes back
-when the camera stops), and drawing every face of the mesh throughout. Prints faces, load
+programmatic rotation, a render each frame), twice per mesh: as the page does when a person
+drags (the preview's coarse level at half resolution while moving; the mesh shown at rest
+comes back when the camera stops), and drawing every face of the mesh at full resolution
+throughout. Prints faces, load
 time (download and decoding to GPU buffers) and frames per second.
 
     python benchmarks/viewer_fps.py                 # the room at 1 cm, ~1.5 M faces
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import os
 import shutil
 import sys
 import tempfile
@@ -132,13 +134,15 @@ def main() -> None:
                 browser.close()
         finally:
             srv.stop()
-    print(f"headless Chromium, {gl}, {args.width}x{args.height}, orbit {seconds:g} s")
-    print(f"{'mesh':<9}{'faces':>11}{'load s':>8}  {'while orbiting':<22}{'frames':>7}{'fps':>7}")
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    print(f"headless Chromium, {gl}, {args.width}x{args.height}, orbit {seconds:g} s; "
+          f"load average after: {load} (2 cores)")  # fmt: skip
+    print(f"{'mesh':<9}{'faces':>11}{'load s':>8}  {'while orbiting':<24}{'frames':>7}{'fps':>7}")
     for i, run in enumerate(runs):
         mesh, lod = i // 2, i % 2 == 0
-        drawn = f"{'coarse level' if lod else 'every face'} {run['faces']:,}"
+        drawn = f"{'coarse, half res' if lod else 'every face'} {run['faces']:,}"
         print(f"{('preview', 'full')[mesh]:<9}{faces[mesh]:>11,}{loads[mesh]:>8.1f}  "
-              f"{drawn:<22}{run['frames']:>7}{run['fps']:>7.1f}")  # fmt: skip
+              f"{drawn:<24}{run['frames']:>7}{run['fps']:>7.1f}")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -47,9 +47,9 @@ __all__ = [
 #: Most faces in a preview.
 PREVIEW_FACES = 300_000
 #: Most faces of the preview's coarse level, drawn while the camera moves: software WebGL
-#: (SwiftShader on 2 cores) draws about 2 M triangles/s, so 300 k faces give 6 frames/s and
-#: 60 k about 20 (docs/webapp.md).
-COARSE_FACES = 60_000
+#: (SwiftShader on 2 cores) draws a frame in about 25 ms plus 0.6 us a face, so 300 k faces
+#: orbit at 6.6 frames/s, 60 k at 17 and 30 k at over 20 (docs/webapp.md).
+COARSE_FACES = 30_000
 
 log = logging.getLogger("rangefuse.previews")
 
@@ -85,9 +85,9 @@ def _simplify(
     return np.asarray(v2, np.float32), np.asarray(f2, np.uint32)
 
 
-#: Quadric simplification takes about 330 bytes a face (measured on 1 M faces); a mesh over
+#: Quadric simplification takes about 370 bytes a face (measured on 1.5 M faces); a mesh over
 #: this many times the preview's faces is first clustered, so that a worker's memory stays
-#: within about 0.5 GB over the mesh itself.
+#: within about 0.6 GB over the mesh itself.
 CLUSTER_OVER = 5
 
 

@@ -114,7 +114,7 @@ export class Viewer {
   constructor(container) {
     this.container = container;
     this.renderer = new THREE.WebGLRenderer({ antialias: false, powerPreference: "high-performance" });
-    this.renderer.setPixelRatio(1);  // software WebGL: device pixels cost frames
+    this.renderer.setPixelRatio(1);  // software WebGL: device pixels cost frames (0.5 moving)
     this.renderer.setClearColor(BACKGROUND);
     container.appendChild(this.renderer.domElement);
     this.scene = new THREE.Scene();
@@ -127,11 +127,16 @@ export class Viewer {
     headlight.position.set(0.4, 0.6, 1);  // follows the camera
     this.camera.add(headlight);
     this.controls = new OrbitControls(this.camera, this.renderer.domElement);
-    this.controls.addEventListener("change", () => this.requestRender());
-    this.moving = false;  // the user drags or zooms
+    // The camera moves (a drag, the wheel, keys): the coarse level until it has been still
+    // for 200 ms, then the mesh once.
+    this.moving = false;
     this.lod = true;  // draw the coarse level while moving
-    this.controls.addEventListener("start", () => { this.moving = true; });
-    this.controls.addEventListener("end", () => { this.moving = false; this.requestRender(); });
+    this.controls.addEventListener("change", () => {
+      this.moving = true;
+      clearTimeout(this.still);
+      this.still = setTimeout(() => { this.moving = false; this.requestRender(); }, 200);
+      this.requestRender();
+    });
     this.materials = [
       new THREE.MeshLambertMaterial({ color: MEASURED, side: THREE.DoubleSide }),
       new THREE.MeshLambertMaterial({ color: INFERRED, side: THREE.DoubleSide }),
@@ -161,9 +166,15 @@ export class Viewer {
   }
 
   render() {
-    if (this.coarse) {  // the coarse level while the camera moves (docs/webapp.md)
-      this.coarse.visible = this.moving && this.lod;
-      this.mesh.visible = !this.coarse.visible;
+    const light = this.moving && this.lod;  // while the camera moves (docs/webapp.md):
+    if (this.coarse) {  // the coarse level
+      this.coarse.visible = light;
+      this.mesh.visible = !light;
+    }
+    const ratio = light ? 0.5 : 1;  // and half the pixels on each axis
+    if (this.renderer.getPixelRatio() !== ratio) {
+      this.renderer.setPixelRatio(ratio);
+      this.renderer.setSize(this.container.clientWidth || 800, this.container.clientHeight || 600, false);
     }
     this.renderer.render(this.scene, this.camera);
     this.frames++;
@@ -280,7 +291,10 @@ export class Viewer {
   // Pixels of the canvas right after a render (no preserveDrawingBuffer needed): how many
   // differ from the background, and a checksum, on a downscaled copy.
   pixelStats(size = 256) {
+    const moving = this.moving;
+    this.moving = false;  // the mesh at rest
     this.render();
+    this.moving = moving;
     const c = document.createElement("canvas");
     c.width = size; c.height = size;
     const ctx = c.getContext("2d", { willReadFrequently: true });
