@@ -139,6 +139,15 @@ def test_workflow_in_the_browser(server, dataset, page):
     assert 0 < hidden["nonBackground"] < shown["nonBackground"], (hidden, shown)
     _shot(page, "05-inferred-hidden")
 
+    # the full mesh (the PLY, parsed in the page) instead of the preview: the same faces here
+    page.check("#full-res")
+    page.wait_for_function("document.querySelector('#status').dataset.full === '1'")
+    assert int(page.get_attribute("#status", "data-faces")) == faces
+    assert int(page.get_attribute("#status", "data-inferred")) == inferred
+    assert _pixels(page)["checksum"] != 0
+    page.uncheck("#full-res")
+    page.wait_for_function("document.querySelector('#status').dataset.full === '0'")
+
     # the up axis is remembered per scene
     page.select_option("#up-axis", "y")
     assert page.evaluate(f"localStorage.getItem('rangefuse-up-{scene_id}')") == "y"
@@ -171,6 +180,42 @@ def test_workflow_in_the_browser(server, dataset, page):
     _shot(page, "07-scene-deleted")
     assert page.errors == []
     page.close()
+
+
+def test_depth_images_take_their_json_or_the_metadata_box(server, page, tmp_path):
+    """A 16-bit PNG depth image with NAME.json beside it is stored; one without is refused in
+    the service's words; the metadata box then supplies what it lacks."""
+    from rangefuse.engine.synth import make_dataset
+    from rangefuse.storage.importers import encode_png
+
+    data = make_dataset("object", views=2)
+    (_, a), (_, b) = data.scans
+    for name, scan in (("depth_a", a), ("depth_b", b)):
+        mm = np.nan_to_num(scan.range_m * 1000, nan=0, posinf=0).clip(0, 65535)
+        (tmp_path / f"{name}.png").write_bytes(encode_png(mm.astype(np.uint16)))
+    meta = {"pose": a.T_W_S.tolist(), "sensor": a.sensor.to_dict(), "depth_scale": 0.001}
+    (tmp_path / "depth_a.json").write_text(json.dumps(meta))
+    with client_of(server) as c:
+        body = {"name": "depth-images", "voxel_size": 0.04, "mode": "mapping"}
+        sid = c.post("/v1/scenes", json=body).json()["id"]
+    page.goto(f"{server.url}/?scene={sid}#token={server.token}")
+    page.wait_for_selector("#scene-panel:not([hidden])")
+    names = ["depth_a.png", "depth_a.json", "depth_b.png"]
+    page.set_input_files("#files", [str(tmp_path / n) for n in names])
+    page.wait_for_function("document.querySelectorAll('#uploads [data-state]').length === 2")
+    assert "depth_a.png: stored" in page.inner_text("#uploads [data-state=stored]")
+    refused = page.inner_text("#uploads [data-state=refused]")
+    assert refused.startswith("depth_b.png: refused: meta.pose: missing"), refused
+    assert "error" in page.get_attribute("#status", "class")  # 1 of 2 stored, in red
+    _shot(page, "08-depth-image-refused")
+    meta_b = {"pose": b.T_W_S.tolist(), "sensor": b.sensor.to_dict(), "depth_scale": 0.001}
+    page.click("summary")  # the metadata box
+    page.fill("#upload-meta", json.dumps(meta_b))
+    page.set_input_files("#files", [str(tmp_path / "depth_b.png")])
+    page.wait_for_function("document.querySelectorAll('#uploads [data-state=stored]').length === 2")
+    with client_of(server) as c:
+        scans = c.get(f"/v1/scenes/{sid}/scans").json()
+    assert sorted(s["name"] for s in scans) == ["depth_a.png", "depth_b.png"]
 
 
 def test_page_without_a_token_asks_for_one(server, browser):

@@ -297,7 +297,9 @@ async function uploadFiles(files) {
       row.dataset.state = "stored";
       ok++;
     } catch (e) {
-      row.textContent = `${f.name}: refused: ${e.message}`;
+      const hint = /^meta\.(pose|sensor|depth_scale)/.test(e.message) && !f.name.endsWith(".npz")
+        ? ` (drop ${stem(f.name)}.json beside it, or fill in the metadata box)` : "";
+      row.textContent = `${f.name}: refused: ${e.message}${hint}`;
       row.classList.add("error");
       row.dataset.state = "refused";
     }

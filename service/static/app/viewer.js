@@ -269,7 +269,9 @@ export class Viewer {
     if (this.mesh) box.setFromObject(this.mesh);
     else if (this.poses) box.setFromObject(this.poses);
     if (box.isEmpty()) return null;
-    return box.getBoundingSphere(new THREE.Sphere());
+    const sphere = box.getBoundingSphere(new THREE.Sphere());
+    if (!this.mesh) sphere.radius = Math.max(sphere.radius, 1);  // poses alone: a metre around
+    return sphere;
   }
 
   fit() {
