@@ -23,11 +23,11 @@ import numpy as np
 from numba import njit, prange
 
 from ._memory import Scratch, zeros
-from ._sampling import bilinear, prefetch, prefetch_quad, quad_index, quad_origin
-from ._sensor_kernels import project_point
+from ._sampling import bilinear, prefetch, prefetch_quad, quad_columns, quad_index, quad_origin
+from ._sensor_kernels import CYLINDRICAL, P_H, SPHERICAL, project_point
 from ._threads import warn_if_slow_threading
 from .certainty import SHAPE_LINEAR, contribution, pack
-from .classify import FREE, OUT, classify_tiles, reach_radius
+from .classify import FREE, OUT, _classify_tile, classify_tiles, reach_radius
 from .errors import InvalidInputError, ScanNotFoundError
 from .grid import GridSpec
 from .meshing import Mesh, extract_mesh
@@ -42,6 +42,10 @@ Progress = Callable[[int, int], None]
 
 #: Voxels (int64) per 64-byte cache line: the kernel prefetches a slab line by line.
 _LINE_VOXELS = 8
+#: Sensor kinds whose kernel tests the eight parts of a partial tile before its voxels
+#: (``docs/lidar.md``): a LiDAR voxel's projection (two ``atan2``) costs several times a
+#: pinhole's, and a far tile is mostly out of view or behind the surface.
+_SPLIT_KINDS = (SPHERICAL, CYLINDRICAL)
 
 
 @functools.cache
@@ -74,11 +78,12 @@ def _integrate_kernel(kind: int, shape: int):
     none of :func:`engine._sampling.sample_range`'s tests: it gives the same values.
     """
     linear = shape == SHAPE_LINEAR
+    split = kind in _SPLIT_KINDS
 
     @njit(cache=True, parallel=True, error_model="numpy")
     def integrate(
         keys, data, rows, free, sign, T, h, M, c, params, table, rng, bounds, eps0, eps1, rho,
-        falloff, q_rho, informed,
+        falloff, q_rho, informed, o_W, p_free, p_reach, p_levels, reach_max,
     ):  # fmt: skip
         # Add ``sign`` times one scan's contribution to the tiles ``data[rows]``;
         # ``informed[row]`` receives the number of voxels of each tile the scan informs.
@@ -87,6 +92,8 @@ def _integrate_kernel(kind: int, shape: int):
         free_value = sign * pack(q_rho)
         flat_bounds = bounds.reshape(-1)
         N = T * T * T
+        nqv = int(params[P_H]) - 1
+        nqu = quad_columns(kind, params)
         for n in prange(rows.shape[0]):
             row = rows[n]
             tile = data[row].reshape(-1)
@@ -97,12 +104,6 @@ def _integrate_kernel(kind: int, shape: int):
                 continue
             # one slab's projections, then the tile's queue of band points
             TT = T * T
-            slab_y = np.empty(TT)
-            slab_z = np.empty(TT)
-            slab_u = np.empty(TT)
-            slab_v = np.empty(TT)
-            slab_d = np.empty(TT)
-            slab_q = np.empty(TT, np.int64)
             at = np.empty(N, np.int64)
             band_u = np.empty(N)
             band_v = np.empty(N)
@@ -114,49 +115,137 @@ def _integrate_kernel(kind: int, shape: int):
             i0 = keys[row, 0] * T
             j0 = keys[row, 1] * T
             k0 = keys[row, 2] * T
-            for b in range(T):
-                y = ((j0 + b) + 0.5) * h
-                for cc in range(T):
-                    slab_y[b * T + cc] = y
-                    slab_z[b * T + cc] = ((k0 + cc) + 0.5) * h
-            for a in range(T):
-                x = ((i0 + a) + 0.5) * h
-                if a + 1 < T:  # the next slab's voxels, one prefetch per cache line
-                    following = data[row, a + 1]
-                    for first in range(0, TT, _LINE_VOXELS):
-                        prefetch(following, first // T, first % T)
-                for m in range(TT):  # pass 1
-                    y = slab_y[m]
-                    z = slab_z[m]
-                    bx = M[0, 0] * x + M[0, 1] * y + c[0]
-                    by = M[1, 0] * x + M[1, 1] * y + c[1]
-                    bz = M[2, 0] * x + M[2, 1] * y + c[2]
-                    u, v, d = project_point(
-                        kind, params, table, bx + M[0, 2] * z, by + M[1, 2] * z,
-                        bz + M[2, 2] * z,
+            if split and T % 2 == 0:
+                # eight parts of S^3 voxels, each tested as a tile first (classify): a part
+                # out of view is skipped, a part free throughout takes logit(rho) at once,
+                # only the others are projected voxel by voxel
+                S = T // 2
+                SS = S * S
+                slab_y = np.empty(SS)
+                slab_z = np.empty(SS)
+                slab_u = np.empty(SS)
+                slab_v = np.empty(SS)
+                slab_d = np.empty(SS)
+                slab_q = np.empty(SS, np.int64)
+                part_key = np.empty(3, np.int64)
+                lo = np.empty(3)
+                hi = np.empty(3)
+                acc = np.empty(3)
+                for part in range(8):
+                    sa = (part >> 2) & 1
+                    sb = (part >> 1) & 1
+                    sc = part & 1
+                    part_key[0] = keys[row, 0] * 2 + sa
+                    part_key[1] = keys[row, 1] * 2 + sb
+                    part_key[2] = keys[row, 2] * 2 + sc
+                    seen = _classify_tile(
+                        kind, part_key, S, 0.0, h, M, c, o_W, params, table, p_reach, p_free,
+                        p_levels, reach_max, nqu, nqv, linear, lo, hi, acc,
                     )  # fmt: skip
-                    slab_u[m] = u
-                    slab_v[m] = v
-                    slab_d[m] = d
-                    slab_q[m] = quad_index(kind, params, u, v)
-                base = a * TT
-                for m in range(TT):  # pass 2
-                    q = slab_q[m]
-                    if q < 0:
+                    if seen == OUT:
                         continue
-                    d = slab_d[m]
-                    if linear and d < flat_bounds[2 * q]:
-                        tile[base + m] += free_value
-                        count += 1
-                    elif d <= flat_bounds[2 * q + 1]:
-                        u = slab_u[m]
-                        v = slab_v[m]
-                        at[queued] = base + m
-                        band_u[queued] = u
-                        band_v[queued] = v
-                        band_d[queued] = d
-                        queued += 1
-                        prefetch_quad(kind, params, rng, u, v)  # pass 3 reads its corners
+                    corner = sa * S * TT + sb * S * T + sc * S
+                    if seen == FREE:
+                        for a in range(S):
+                            for b in range(S):
+                                line = corner + a * TT + b * T
+                                for cc in range(S):
+                                    tile[line + cc] += free_value
+                        count += S * SS
+                        continue
+                    ja = j0 + sb * S
+                    ka = k0 + sc * S
+                    for b in range(S):
+                        y = ((ja + b) + 0.5) * h
+                        for cc in range(S):
+                            slab_y[b * S + cc] = y
+                            slab_z[b * S + cc] = ((ka + cc) + 0.5) * h
+                    for a in range(S):
+                        x = ((i0 + sa * S + a) + 0.5) * h
+                        for m in range(SS):  # pass 1
+                            y = slab_y[m]
+                            z = slab_z[m]
+                            bx = M[0, 0] * x + M[0, 1] * y + c[0]
+                            by = M[1, 0] * x + M[1, 1] * y + c[1]
+                            bz = M[2, 0] * x + M[2, 1] * y + c[2]
+                            u, v, d = project_point(
+                                kind, params, table, bx + M[0, 2] * z, by + M[1, 2] * z,
+                                bz + M[2, 2] * z,
+                            )  # fmt: skip
+                            slab_u[m] = u
+                            slab_v[m] = v
+                            slab_d[m] = d
+                            slab_q[m] = quad_index(kind, params, u, v)
+                        base = corner + a * TT
+                        for b in range(S):  # pass 2
+                            for cc in range(S):
+                                m = b * S + cc
+                                q = slab_q[m]
+                                if q < 0:
+                                    continue
+                                d = slab_d[m]
+                                if linear and d < flat_bounds[2 * q]:
+                                    tile[base + b * T + cc] += free_value
+                                    count += 1
+                                elif d <= flat_bounds[2 * q + 1]:
+                                    u = slab_u[m]
+                                    v = slab_v[m]
+                                    at[queued] = base + b * T + cc
+                                    band_u[queued] = u
+                                    band_v[queued] = v
+                                    band_d[queued] = d
+                                    queued += 1
+                                    prefetch_quad(kind, params, rng, u, v)
+            else:
+                slab_y = np.empty(TT)
+                slab_z = np.empty(TT)
+                slab_u = np.empty(TT)
+                slab_v = np.empty(TT)
+                slab_d = np.empty(TT)
+                slab_q = np.empty(TT, np.int64)
+                for b in range(T):
+                    y = ((j0 + b) + 0.5) * h
+                    for cc in range(T):
+                        slab_y[b * T + cc] = y
+                        slab_z[b * T + cc] = ((k0 + cc) + 0.5) * h
+                for a in range(T):
+                    x = ((i0 + a) + 0.5) * h
+                    if a + 1 < T:  # the next slab's voxels, one prefetch per cache line
+                        following = data[row, a + 1]
+                        for first in range(0, TT, _LINE_VOXELS):
+                            prefetch(following, first // T, first % T)
+                    for m in range(TT):  # pass 1
+                        y = slab_y[m]
+                        z = slab_z[m]
+                        bx = M[0, 0] * x + M[0, 1] * y + c[0]
+                        by = M[1, 0] * x + M[1, 1] * y + c[1]
+                        bz = M[2, 0] * x + M[2, 1] * y + c[2]
+                        u, v, d = project_point(
+                            kind, params, table, bx + M[0, 2] * z, by + M[1, 2] * z,
+                            bz + M[2, 2] * z,
+                        )  # fmt: skip
+                        slab_u[m] = u
+                        slab_v[m] = v
+                        slab_d[m] = d
+                        slab_q[m] = quad_index(kind, params, u, v)
+                    base = a * TT
+                    for m in range(TT):  # pass 2
+                        q = slab_q[m]
+                        if q < 0:
+                            continue
+                        d = slab_d[m]
+                        if linear and d < flat_bounds[2 * q]:
+                            tile[base + m] += free_value
+                            count += 1
+                        elif d <= flat_bounds[2 * q + 1]:
+                            u = slab_u[m]
+                            v = slab_v[m]
+                            at[queued] = base + m
+                            band_u[queued] = u
+                            band_v[queued] = v
+                            band_d[queued] = d
+                            queued += 1
+                            prefetch_quad(kind, params, rng, u, v)  # pass 3 reads its corners
             for m in range(queued):  # pass 3
                 u = band_u[m]
                 v = band_v[m]
@@ -231,12 +320,14 @@ def integrate_seen(
         warn_if_slow_threading()
         kernel = _integrate_kernel(scan.kind, scan.shape)
         if bounds is None:
-            bounds = scan.quad_bounds(scratch)
+            bounds = scan.quad_bounds(scratch)  # and the pyramid, when it is not there yet
+        p_free, p_reach, p_levels = scan.pyramid()
         kernel(
             keys, data, np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(free),
             np.int64(sign), grid.tile_size, grid.voxel_size, scan.M, scan.c, scan.params,
             scan.table, scan.range_m, bounds, scan.eps, scan.eps_per_m, scan.rho,
-            scan.falloff, scan.q_rho, informed,
+            scan.falloff, scan.q_rho, informed, scan.origin_W, p_free, p_reach, p_levels,
+            scan.reach_max,
         )  # fmt: skip
     return informed
 
