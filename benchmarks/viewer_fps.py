@@ -9,7 +9,8 @@ programmatic rotation, a render each frame), twice per mesh: as the page does wh
 drags (the preview's coarse level at half resolution while moving; the mesh shown at rest
 comes back when the camera stops), and drawing every face of the mesh at full resolution
 throughout. Prints faces, load
-time (download and decoding to GPU buffers) and frames per second.
+time (download and decoding to GPU buffers) and frames per second; saves screenshots of the
+page at rest to build/screenshots/viewer-*.png.
 
     python benchmarks/viewer_fps.py                 # the room at 1 cm, ~1.5 M faces
     python benchmarks/viewer_fps.py --quick         # the object at 4 cm, for a smoke run
@@ -122,6 +123,9 @@ def main() -> None:
                 page.wait_for_function("document.querySelector('#status').dataset.full === '0'")
                 loads = [time.perf_counter() - t0]
                 faces = [int(page.get_attribute("#status", "data-faces"))]
+                shots = ROOT / "build" / "screenshots"
+                shots.mkdir(parents=True, exist_ok=True)
+                page.screenshot(path=str(shots / f"viewer-{name}-preview.png"))
                 runs = [_measure(page, seconds, True), _measure(page, seconds, False)]
                 t0 = time.perf_counter()
                 page.check("#full-res")
@@ -130,6 +134,7 @@ def main() -> None:
                 )
                 loads.append(time.perf_counter() - t0)
                 faces.append(int(page.get_attribute("#status", "data-faces")))
+                page.screenshot(path=str(shots / f"viewer-{name}-full.png"))
                 runs += [_measure(page, seconds, True), _measure(page, seconds, False)]
                 browser.close()
         finally:

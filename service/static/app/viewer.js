@@ -110,6 +110,24 @@ export function parsePly(buf) {
   return { positions, indices, normals, nFaces: inferred.length, nMeasured, sourceFaces: inferred.length };
 }
 
+// A vertex whose faces' normals cancel out (a fold left by simplification) has no normal,
+// and a zero normal lights as black: it takes the normal of one of its faces instead.
+function fixZeroNormals(g) {
+  const n = g.attributes.normal.array, p = g.attributes.position.array, idx = g.index.array;
+  for (let f = 0; f < idx.length; f += 3) {
+    for (let k = 0; k < 3; k++) {
+      const v = idx[f + k];
+      if (n[3 * v] * n[3 * v] + n[3 * v + 1] * n[3 * v + 1] + n[3 * v + 2] * n[3 * v + 2] > 0.25) continue;
+      const [a, b, c] = [idx[f], idx[f + 1], idx[f + 2]];
+      const ux = p[3 * b] - p[3 * a], uy = p[3 * b + 1] - p[3 * a + 1], uz = p[3 * b + 2] - p[3 * a + 2];
+      const wx = p[3 * c] - p[3 * a], wy = p[3 * c + 1] - p[3 * a + 1], wz = p[3 * c + 2] - p[3 * a + 2];
+      const nx = uy * wz - uz * wy, ny = uz * wx - ux * wz, nz = ux * wy - uy * wx;
+      const len = Math.hypot(nx, ny, nz);
+      if (len > 0) { n[3 * v] = nx / len; n[3 * v + 1] = ny / len; n[3 * v + 2] = nz / len; }
+    }
+  }
+}
+
 export class Viewer {
   constructor(container) {
     this.container = container;
@@ -137,10 +155,11 @@ export class Viewer {
       this.still = setTimeout(() => { this.moving = false; this.requestRender(); }, 200);
       this.requestRender();
     });
-    this.materials = [
-      new THREE.MeshLambertMaterial({ color: MEASURED, side: THREE.DoubleSide }),
-      new THREE.MeshLambertMaterial({ color: INFERRED, side: THREE.DoubleSide }),
-    ];
+    // Smooth shading from vertex normals; flat shading (each face's own normal, facing the
+    // camera) for simplified levels, whose folds make vertex normals unreliable.
+    const pair = flatShading => [MEASURED, INFERRED].map(color =>
+      new THREE.MeshLambertMaterial({ color, side: THREE.DoubleSide, flatShading }));
+    this.materials = { smooth: pair(false), flat: pair(true) };
     this.mesh = null;
     this.coarse = null;
     this.poses = null;
@@ -186,17 +205,17 @@ export class Viewer {
     this.requestRender();
   }
 
-  _build(data) {
+  _build(data, flat) {
     const g = new THREE.BufferGeometry();
     g.setAttribute("position", new THREE.BufferAttribute(data.positions, 3));
     g.setIndex(new THREE.BufferAttribute(data.indices, 1));
     if (data.normals) g.setAttribute("normal", new THREE.BufferAttribute(data.normals, 3));
-    else g.computeVertexNormals();
+    else if (!flat) { g.computeVertexNormals(); fixZeroNormals(g); }
     const nIdx = data.indices.length, m = data.nMeasured * 3;
     if (m > 0) g.addGroup(0, m, 0);
     if (nIdx > m) g.addGroup(m, nIdx - m, 1);
     g.computeBoundingSphere();
-    const mesh = new THREE.Mesh(g, this.materials);
+    const mesh = new THREE.Mesh(g, flat ? this.materials.flat : this.materials.smooth);
     this.root.add(mesh);
     return mesh;
   }
@@ -205,8 +224,8 @@ export class Viewer {
   // a lighter level of the same surface, drawn instead while the camera moves.
   setMesh(data, { keepView = false, coarse = null } = {}) {
     this.clear();
-    this.mesh = this._build(data);
-    this.coarse = coarse ? this._build(coarse) : null;
+    this.mesh = this._build(data, data.nFaces < data.sourceFaces);
+    this.coarse = coarse ? this._build(coarse, true) : null;
     this.setInferred(this.inferredMode);
     if (!keepView) this.fit();
     this.requestRender();
@@ -214,12 +233,13 @@ export class Viewer {
 
   setInferred(mode) {
     this.inferredMode = mode;
-    const mat = this.materials[1];
-    mat.visible = mode !== "hide";
-    mat.transparent = mode === "dim";
-    mat.opacity = mode === "dim" ? 0.25 : 1;
-    mat.depthWrite = mode !== "dim";
-    mat.needsUpdate = true;
+    for (const mat of [this.materials.smooth[1], this.materials.flat[1]]) {
+      mat.visible = mode !== "hide";
+      mat.transparent = mode === "dim";
+      mat.opacity = mode === "dim" ? 0.25 : 1;
+      mat.depthWrite = mode !== "dim";
+      mat.needsUpdate = true;
+    }
     this.requestRender();
   }
 
