@@ -94,7 +94,10 @@ def _child_rangefuse(cfg: dict) -> dict:
             for scan_id, scan in scans:
                 scene.store_scan(scan_id, scan)
             stored = time.perf_counter()
-            scene.integrate_pending()
+            if cfg.get("group_scans"):
+                scene.integrate_pending(group_scans=cfg["group_scans"])
+            else:
+                scene.integrate_pending()
             seconds = time.perf_counter() - t0
             out["store_s"] = stored - t0
             out["integrate_s"] = seconds - out["store_s"]
@@ -206,6 +209,10 @@ def main() -> None:
     parser.add_argument("--octomap-scans", type=int, default=10, help="0: no OctoMap")
     parser.add_argument("--tile-size", type=int, default=16)
     parser.add_argument("--cache-mb", type=float, default=512.0)
+    parser.add_argument(
+        "--group-scans", type=int, help="scans per checkpoint in the store runs (default: the "
+        "scene's GROUP_SCANS)"
+    )  # fmt: skip
     parser.add_argument("--tmp", default=None, help="folder for the stores (default: system)")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -224,7 +231,10 @@ def main() -> None:
     if octomap_scans > 0 and importlib.util.find_spec("pyoctomap") is None:
         raise SystemExit("pyoctomap is not importable: pip install -e '.[bench]' (or give "
                          "--octomap-scans 0)")  # fmt: skip
-    base = {"tile": args.tile_size, "cache_mb": args.cache_mb, "tmp": args.tmp}
+    if args.group_scans is not None and args.group_scans < 1:
+        raise SystemExit(f"--group-scans: give at least 1, got {args.group_scans}")
+    base = {"tile": args.tile_size, "cache_mb": args.cache_mb, "tmp": args.tmp,
+            "group_scans": args.group_scans}  # fmt: skip
     configs: list[dict] = []
     for h in voxels:
         text = args.lengths or ("40,160" if args.quick else DEFAULT_LENGTHS.get(h, "40,160"))
@@ -248,6 +258,7 @@ def main() -> None:
         f"street, spherical LiDAR 64x1024 (max range 80 m), one scan per 2 m, gaussian noise "
         f"{NOISE_M} m, tiles {args.tile_size}^3, store cache {args.cache_mb:g} MB, "
         f"{os.cpu_count()} cores"
+        + (f", {args.group_scans} scans per store checkpoint" if args.group_scans else "")
     )
     print(header)
     print("-" * len(header))

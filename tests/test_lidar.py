@@ -94,3 +94,26 @@ def test_tiles_beyond_a_scans_sphere_are_out_of_its_view() -> None:
         for halo in (0, 1):
             status = classify_tiles(scan, grid, keys[~near], halo)
             assert (status == OUT).all()
+
+
+@pytest.mark.slow
+def test_lidar_benchmark_smoke(tmp_path) -> None:
+    import importlib.util
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "lidar.py"
+    octomap = "2" if importlib.util.find_spec("pyoctomap") is not None else "0"
+    out = subprocess.run(
+        [sys.executable, str(script), "--voxels", "0.2", "--lengths", "8", "--octomap-scans",
+         octomap, "--group-scans", "2", "--tmp", str(tmp_path)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr[-3000:]
+    rows = [line.split() for line in out.stdout.splitlines() if line.startswith("  0.20")]
+    assert [r[2:4] for r in rows[:2]] == [["rangefuse", "memory"], ["rangefuse", "store"]]
+    assert all(int(r[4]) == 4 for r in rows[:2])  # one scan per 2 m
+    assert rows[0][9] == rows[1][9]  # the same tiles in memory and in the store
+    if octomap != "0":
+        assert "faster than OctoMap" in out.stdout
