@@ -33,7 +33,9 @@ __all__ = ["SphereIndex", "TileIndex", "box_distance", "reaches", "shift_for"]
 _ENUMERATE_FACTOR = 4
 
 
-def box_distance(lo: np.ndarray, hi: np.ndarray, origin: Sequence[float]) -> np.ndarray:
+def box_distance(
+    lo: np.ndarray, hi: np.ndarray, origin: Sequence[float] | np.ndarray
+) -> np.ndarray:
     """Distance from ``origin`` to each box ``[lo, hi]`` (float64 (n, 3) or (3,))."""
     o = np.asarray(origin, np.float64)
     return np.sqrt(np.sum(np.maximum(np.maximum(lo - o, o - hi), 0.0) ** 2, axis=-1))
@@ -189,7 +191,7 @@ class SphereIndex:
         if not members:
             del self._cells[cell]
 
-    def _cell(self, p: Sequence[float]) -> tuple[int, int, int]:
+    def _cell(self, p: Sequence[float] | np.ndarray) -> tuple[int, int, int]:
         c = self.cell_m
         return (math.floor(p[0] / c), math.floor(p[1] / c), math.floor(p[2] / c))
 

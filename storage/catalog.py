@@ -41,6 +41,8 @@ CREATE TABLE IF NOT EXISTS scans(
     reach_m REAL NOT NULL, checksum TEXT NOT NULL, created_at REAL NOT NULL,
     far_ranges INTEGER, PRIMARY KEY(scene_id, id));
 CREATE UNIQUE INDEX IF NOT EXISTS scans_seq ON scans(scene_id, seq);
+CREATE INDEX IF NOT EXISTS scans_origin ON scans(scene_id, ox);
+CREATE INDEX IF NOT EXISTS scans_reach ON scans(scene_id, reach_m);
 CREATE TABLE IF NOT EXISTS tile_scans(
     scene_id TEXT NOT NULL, tile INTEGER NOT NULL, scan_id TEXT NOT NULL,
     owner INTEGER NOT NULL, PRIMARY KEY(scene_id, tile, scan_id)) WITHOUT ROWID;
@@ -292,6 +294,41 @@ class Catalog:
         ).fetchone()
         return int(row[0])
 
+    def scans_near_box(
+        self,
+        scene_id: str,
+        lo_m: Sequence[float],
+        hi_m: Sequence[float],
+        slack_m: float,
+        states: Sequence[str] = ("fused",),
+    ) -> list[ScanRow]:
+        """Scans in ``states`` whose bounding sphere (origin, ``reach_m``) may come within
+        ``slack_m`` of the box ``[lo_m, hi_m]`` (metres), in sequence order: those whose
+        origin lies in the box widened by the scene's largest finite reach and the slack, and
+        those of unbounded reach. A superset of the spheres that meet the box (the caller
+        tests each); found through the indexes on the origin's x and on the reach, not by
+        reading every scan of the scene."""
+        inf = float("inf")
+        row = self._db.execute(
+            "SELECT MAX(reach_m) FROM scans WHERE scene_id=? AND reach_m < ?", (scene_id, inf)
+        ).fetchone()
+        pad = (float(row[0]) if row[0] is not None else 0.0) + float(slack_m)
+        lo = [float(x) - pad for x in lo_m]
+        hi = [float(x) + pad for x in hi_m]
+        marks = ",".join("?" * len(states))
+        near = self._db.execute(
+            f"SELECT {self._SCAN_COLUMNS} FROM scans WHERE scene_id=? AND ox BETWEEN ? AND ? "
+            f"AND oy BETWEEN ? AND ? AND oz BETWEEN ? AND ? AND state IN ({marks})",
+            (scene_id, lo[0], hi[0], lo[1], hi[1], lo[2], hi[2], *states),
+        ).fetchall()
+        unbounded = self._db.execute(
+            f"SELECT {self._SCAN_COLUMNS} FROM scans WHERE scene_id=? AND reach_m >= ? "
+            f"AND state IN ({marks})",
+            (scene_id, inf, *states),
+        ).fetchall()
+        rows = {r[0]: self._scan_row(r) for r in [*near, *unbounded]}
+        return sorted(rows.values(), key=lambda r: r.seq)
+
     def set_scan_state(self, scene_id: str, scan_ids: Sequence[str], state: str) -> None:
         if state not in SCAN_STATES:
             raise ValueError(f"unknown scan state {state!r}")
@@ -311,6 +348,19 @@ class Catalog:
             (scene_id,),
         ).fetchall()
         return np.array([r[0] for r in rows], np.int64)
+
+    def tile_keys_in_ranges(self, scene_id: str, ranges: Sequence[tuple[int, int]]) -> np.ndarray:
+        """Packed keys of the tiles that exist within the packed-key ranges ``[lo, hi]``
+        (ascending, disjoint), sorted: one range query on the tile index per range."""
+        out: list[int] = []
+        for lo, hi in ranges:
+            rows = self._db.execute(
+                "SELECT DISTINCT tile FROM tile_scans WHERE scene_id=? AND tile BETWEEN ? AND ? "
+                "AND owner=1 ORDER BY tile",
+                (scene_id, int(lo), int(hi)),
+            ).fetchall()
+            out.extend(r[0] for r in rows)
+        return np.array(out, np.int64)
 
     def n_tiles(self, scene_id: str) -> int:
         row = self._db.execute(

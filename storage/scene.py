@@ -21,6 +21,7 @@ open finishes. Either way the result is the bits of a run that was never interru
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import shutil
 import uuid
@@ -31,7 +32,7 @@ from typing import Any
 
 import numpy as np
 from rangefuse.engine import DenseGrid, FusionParams, GridSpec, Scan, ScanNotFoundError
-from rangefuse.engine.grid import pack_keys, unpack_keys
+from rangefuse.engine.grid import KEY_LIMIT, pack_keys, unpack_keys
 from rangefuse.engine.meshing import HALO_TILES, Mesh
 from rangefuse.engine.planner import Plan, Sphere, View, scans_near, tiles_near
 from rangefuse.engine.volume import dense_logodds
@@ -105,6 +106,21 @@ def _gather(
             informed.setdefault(scan_id, []).append(pack_keys(unit.keys[unit_rows]))
         updates += result.voxel_updates
     return {s: np.concatenate(v) for s, v in informed.items()}, updates
+
+
+def _reach_box(spheres: Sequence[Sphere], grid: GridSpec) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box of tile keys ``[lo, hi]`` that holds every tile within reach of the spheres
+    (their radius and the planner's one tile of slack, and a tile more against rounding), or
+    None when a sphere is unbounded (or there is none)."""
+    if not spheres or not all(math.isfinite(s.radius_m) for s in spheres):
+        return None
+    tile_m = grid.tile_size_m
+    origins = np.array([s.origin for s in spheres], np.float64)
+    radii = np.array([s.radius_m for s in spheres], np.float64)[:, None] + tile_m
+    lo = np.floor((origins - radii).min(axis=0) / tile_m).astype(np.int64) - 1
+    hi = np.floor((origins + radii).max(axis=0) / tile_m).astype(np.int64) + 1
+    limit = KEY_LIMIT - 1
+    return np.clip(lo, -limit, limit), np.clip(hi, -limit, limit)
 
 
 @dataclass(frozen=True)
@@ -227,10 +243,39 @@ class Scene:
         report.tiles_written += len(work.written)
 
     def _group_work(self, new_ids: list[str]) -> _Work:
-        """The plan of fusing the scans ``new_ids`` and its units of work."""
-        existing = self.catalog.tile_keys(self.scene_id)
+        """The plan of fusing the scans ``new_ids`` and its units of work.
+
+        The plan sees the tiles and the earlier scans within reach of the new scans (their
+        spheres recorded at upload bound every tile they allocate or have in view), found
+        through the catalog's indexes: a group's cost does not grow with the scene."""
+        rows = [self.catalog.scan(self.scene_id, scan_id) for scan_id in new_ids]
+        reach = [Sphere(r.id, r.origin, r.reach_m) for r in rows if r is not None]
+        box = _reach_box(reach, self.grid)
+        if box is None:  # a scan of unbounded reach: everything
+            existing, spheres = self.catalog.tile_keys(self.scene_id), self._spheres()
+        else:
+            existing = self._tile_keys_in(*box)
+            lo_m = box[0] * self.grid.tile_size_m
+            hi_m = (box[1] + 1) * self.grid.tile_size_m
+            near = self.catalog.scans_near_box(
+                self.scene_id, lo_m.tolist(), hi_m.tolist(), self.grid.tile_size_m
+            )  # fmt: skip
+            spheres = [Sphere(r.id, r.origin, r.reach_m) for r in near]
         return self._work(self._plan(kind="add", existing=existing, scans=new_ids,
-                                     spheres=self._spheres()))  # fmt: skip
+                                     spheres=spheres))  # fmt: skip
+
+    def _tile_keys_in(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Packed keys of the existing tiles in the box of tile keys ``[lo, hi]``, sorted:
+        one range of packed keys per x (keys pack x, then y, then z)."""
+        ranges = [
+            (int(pack_keys(np.array([[x, lo[1], lo[2]]]))[0]),
+             int(pack_keys(np.array([[x, hi[1], hi[2]]]))[0]))
+            for x in range(int(lo[0]), int(hi[0]) + 1)
+        ]  # fmt: skip
+        packed = self.catalog.tile_keys_in_ranges(self.scene_id, ranges)
+        keys = unpack_keys(packed)
+        inside = np.all((keys >= lo) & (keys <= hi), axis=1)
+        return packed[inside]
 
     def _plan(self, **what: Any) -> tuple[Plan, list[View]]:
         """A plan and its views, made by a planning unit on the runner."""
@@ -341,7 +386,8 @@ class Scene:
         row = self.catalog.scan(self.scene_id, scan_id)
         assert row is not None
         sphere = Sphere(row.id, row.origin, row.reach_m)
-        existing = self.tile_keys()
+        box = _reach_box([sphere], self.grid)
+        existing = self.tile_keys() if box is None else unpack_keys(self._tile_keys_in(*box))
         near = existing[tiles_near(sphere, existing, self.grid)]
         owners = dict(zip(pack_keys(near).tolist(), self.tile_store.owners(near), strict=True))
         planned = self._plan(kind="remove", existing=pack_keys(near), spheres=[sphere],

@@ -117,3 +117,61 @@ def test_lidar_benchmark_smoke(tmp_path) -> None:
     assert rows[0][9] == rows[1][9]  # the same tiles in memory and in the store
     if octomap != "0":
         assert "faster than OctoMap" in out.stdout
+
+
+def _catalog(tmp_path):
+    from rangefuse.storage.catalog import Catalog
+
+    catalog = Catalog(tmp_path / "catalog.sqlite")
+    catalog.create_scene("s", "s", "t", {}, {})
+    return catalog
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_catalogs_search_finds_every_scan_near_a_box(tmp_path, seed: int) -> None:
+    """The catalog's indexed search returns a superset of the fused scans whose sphere meets a
+    box (the planner's test then picks the same ones as from every scan), in sequence order."""
+    from rangefuse.engine.planner import scans_near
+
+    rng = np.random.default_rng(seed)
+    catalog = _catalog(tmp_path)
+    grid = GridSpec(0.1, 16, "mapping")
+    tile_m = grid.tile_size_m
+    with catalog.transaction():
+        for n in range(300):
+            origin = rng.uniform(-400, 400, 3) * (1, 0.1, 0.01)
+            reach = float(rng.choice([2.0, 30.0, 80.0, math.inf], p=[0.3, 0.3, 0.39, 0.01]))
+            catalog.add_scan("s", f"a{n}", None, origin.tolist(), reach, "x")
+    fused = [f"a{n}" for n in range(300) if rng.random() < 0.7]
+    catalog.set_scan_state("s", fused, "fused")
+    rows = catalog.scans("s", ("fused",))
+    every = [Sphere(r.id, r.origin, r.reach_m) for r in rows]
+    for _ in range(30):
+        lo = rng.integers(-300, 300, 3) * (1, 0, 0) + rng.integers(-5, 5, 3)
+        keys = lo + rng.integers(0, 40, (5, 3))
+        box_lo = keys.min(axis=0) * tile_m
+        box_hi = (keys.max(axis=0) + 1) * tile_m
+        found = catalog.scans_near_box("s", box_lo.tolist(), box_hi.tolist(), tile_m)
+        assert [r.seq for r in found] == sorted(r.seq for r in found)
+        assert {r.state for r in found} <= {"fused"}
+        candidates = [Sphere(r.id, r.origin, r.reach_m) for r in found]
+        assert scans_near(candidates, keys, grid) == scans_near(every, keys, grid)
+
+
+def test_the_catalog_lists_the_tiles_in_key_ranges(tmp_path) -> None:
+    from rangefuse.engine.grid import pack_keys, unique_keys
+
+    rng = np.random.default_rng(7)
+    catalog = _catalog(tmp_path)
+    keys = unique_keys(rng.integers(-50, 50, (2000, 3)))
+    packed = pack_keys(keys)
+    owner = rng.random(len(keys)) < 0.8
+    with catalog.transaction():
+        catalog.add_tile_scans("s", "a", packed, owner)
+        catalog.add_tile_scans("s", "b", packed[::3], np.zeros(len(packed[::3]), np.bool_))
+    owned = packed[owner]
+    ranges = [(int(a), int(b)) for a, b in sorted(rng.choice(owned, (6, 2)).tolist())]
+    ranges = [(a, b) for (a, b), nxt in zip(ranges, [*ranges[1:], (None, None)], strict=True)
+              if nxt[0] is None or b < nxt[0]]  # fmt: skip
+    expected = np.concatenate([owned[(owned >= a) & (owned <= b)] for a, b in ranges])
+    assert np.array_equal(catalog.tile_keys_in_ranges("s", ranges), expected)
