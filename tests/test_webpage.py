@@ -92,6 +92,7 @@ def test_workflow_in_the_browser(server, dataset, page):
     page.select_option("#f-mode", "closed")
     box = [x - 0.3 for x in data.bounds[:3]] + [x + 0.3 for x in data.bounds[3:]]
     page.fill("#f-bounds", ", ".join(f"{x:.3f}" for x in box))
+    _shot(page, "00-scene-form")
     page.click("#create-scene")
     page.wait_for_selector("#scene-panel:not([hidden])")
     page.wait_for_selector(".scene.selected >> text=teapot-desk")

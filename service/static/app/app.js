@@ -191,6 +191,7 @@ async function selectScene(id) {
   await loadScene();
   viewer.setUp(up);
   await loadMesh(true);
+  if (!$("slice-panel").hidden) { updateSliceRange(); loadSlice(); }
 }
 
 async function loadScene() {
@@ -333,6 +334,7 @@ del.addEventListener("click", async () => {
     await api(`/v1/scenes/${state.selected}`, { method: "DELETE" });
     state.selected = null; state.scene = null; viewer.clear(); viewer.setPoses([], false);
     $("scene-panel").hidden = true;
+    $("slice-panel").hidden = true; $("slice-img").removeAttribute("src"); viewer.resize();
     setStatus(`deleted scene “${name}”`);
     refresh();
   } catch (e) { setStatus("the scene was not deleted: " + e.message, true); }
@@ -488,6 +490,8 @@ async function loadSlice() {
     const img = $("slice-img");
     img.src = sliceUrl;
     img.dataset.axis = axis; img.dataset.at = at;
+    const [h, v] = "xyz".replace(axis, "");  // service/api/routes/slices.py: rows flipped
+    $("slice-axes").textContent = `the tiles crossing ${axis} = ${at.toFixed(3)} m: ${h} to the right, ${v} up`;
   } catch (e) { setStatus("no slice: " + e.message, true); }
 }
 $("slice-axis").addEventListener("change", () => { updateSliceRange(); loadSlice(); });
