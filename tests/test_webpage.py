@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -173,6 +174,21 @@ def test_workflow_in_the_browser(server, dataset, page):
     assert download.value.suggested_filename.endswith(".ply")
     raw = mesh.metadata["_ply_raw"]["face"]["data"]
     assert int(np.asarray(raw["inferred"]).sum()) == inferred
+
+    # cancel a running job: it waits for the scene's writer lock, held here meanwhile, and
+    # stops before its first unit of work
+    from rangefuse.storage import Store
+
+    with Store.open(server.data_dir) as store:
+        held = store.lock_scene(scene_id, wait=True)
+    try:
+        page.click("#reconstruct")
+        page.click("#jobs .job[data-state=running] button")
+        page.wait_for_selector("#jobs .job[data-state=cancelling] >> text=stopping")
+    finally:
+        os.close(held)
+    page.wait_for_selector("#jobs .job[data-state=cancelled] >> text=cancelled")
+    _shot(page, "06b-job-cancelled")
 
     # delete the scene (a second click confirms)
     page.click("#delete-scene")

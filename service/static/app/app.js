@@ -391,6 +391,7 @@ function renderJobs() {
     const running = !FINISHED.has(j.state);
     const detail = j.state === "failed" ? `failed: ${j.error || "no reason given"}`
       : j.state === "done" ? `done in ${fmtSeconds((j.finished_at || now) - j.created_at)}` + (j.kind === "reconstruct" && j.result ? `, ${fmtInt(j.result.faces)} faces` : "")
+      : j.state === "cancelled" ? "cancelled: nothing it did was kept"
       : j.state === "queued" ? "waiting for a worker"
       : j.state === "cancelling" ? "stopping…" : `${Math.round(j.progress * 100)} %, ${eta(j, now)}`;
     return el("div", { class: `job ${j.state}`, "data-job": j.id, "data-state": j.state },
@@ -424,6 +425,7 @@ async function refresh() {
         sceneChanged = true;
         if (j.kind === "reconstruct" && j.state === "done") meshChanged = true;
         if (j.state === "failed") setStatus(`${describeJob(j)} failed: ${j.error}`, true);
+        if (j.state === "cancelled") setStatus(`${describeJob(j)}: cancelled`);
       }
     }
     state.jobs = jobs;
