@@ -77,12 +77,8 @@ def page(browser):
             page.close()
 
 
-def test_workflow_in_the_browser(server, dataset, page):
-    data, root = dataset
-    page.goto(f"{server.url}/#token={server.token}")  # the fragment never leaves the browser
-    assert "token" not in page.url  # removed from the address bar
-
-    # create a scene from the form (rendered from /openapi.json, with help and defaults)
+def _create_scene_from_the_form(page, bounds) -> None:
+    """The form is rendered from /openapi.json, with each parameter's help and default."""
     page.click("#new-scene")
     page.wait_for_selector("#f-voxel_size")
     assert "voxel edge" in page.inner_text("#scene-fields")  # each parameter's help
@@ -91,7 +87,7 @@ def test_workflow_in_the_browser(server, dataset, page):
     page.fill("#f-voxel_size", "0.02")
     page.fill("#f-tile_size", "8")
     page.select_option("#f-mode", "closed")
-    box = [x - 0.3 for x in data.bounds[:3]] + [x + 0.3 for x in data.bounds[3:]]
+    box = [x - 0.3 for x in bounds[:3]] + [x + 0.3 for x in bounds[3:]]
     page.fill("#f-bounds", ", ".join(f"{x:.3f}" for x in box))
     _shot(page, "00-scene-form")
     page.click("#create-scene")
@@ -99,6 +95,30 @@ def test_workflow_in_the_browser(server, dataset, page):
     page.wait_for_selector(".scene.selected >> text=teapot-desk")
     page.wait_for_selector("#status >> text=No scans yet")
     _shot(page, "01-scene-created")
+
+
+def _cancel_a_running_reconstruction(page, server, scene_id: str) -> None:
+    """The job waits for the scene's writer lock, held here meanwhile, and stops before its
+    first unit of work."""
+    from rangefuse.storage import Store
+
+    with Store.open(server.data_dir) as store:
+        held = store.lock_scene(scene_id, wait=True)
+    try:
+        page.click("#reconstruct")
+        page.click("#jobs .job[data-state=running] button")
+        page.wait_for_selector("#jobs .job[data-state=cancelling] >> text=stopping")
+    finally:
+        os.close(held)
+    page.wait_for_selector("#jobs .job[data-state=cancelled] >> text=cancelled")
+    _shot(page, "06b-job-cancelled")
+
+
+def test_workflow_in_the_browser(server, dataset, page):
+    data, root = dataset
+    page.goto(f"{server.url}/#token={server.token}")  # the fragment never leaves the browser
+    assert "token" not in page.url  # removed from the address bar
+    _create_scene_from_the_form(page, data.bounds)
 
     # upload the scans through the file input, with the dataset's sensor.json
     files = [root / "sensor.json", *sorted((root / "scans").glob("*.npz"))]
@@ -175,20 +195,7 @@ def test_workflow_in_the_browser(server, dataset, page):
     raw = mesh.metadata["_ply_raw"]["face"]["data"]
     assert int(np.asarray(raw["inferred"]).sum()) == inferred
 
-    # cancel a running job: it waits for the scene's writer lock, held here meanwhile, and
-    # stops before its first unit of work
-    from rangefuse.storage import Store
-
-    with Store.open(server.data_dir) as store:
-        held = store.lock_scene(scene_id, wait=True)
-    try:
-        page.click("#reconstruct")
-        page.click("#jobs .job[data-state=running] button")
-        page.wait_for_selector("#jobs .job[data-state=cancelling] >> text=stopping")
-    finally:
-        os.close(held)
-    page.wait_for_selector("#jobs .job[data-state=cancelled] >> text=cancelled")
-    _shot(page, "06b-job-cancelled")
+    _cancel_a_running_reconstruction(page, server, scene_id)
 
     # delete the scene (a second click confirms)
     page.click("#delete-scene")
