@@ -393,7 +393,8 @@ function renderJobs() {
       : j.state === "done" ? `done in ${fmtSeconds((j.finished_at || now) - j.created_at)}` + (j.kind === "reconstruct" && j.result ? `, ${fmtInt(j.result.faces)} faces` : "")
       : j.state === "cancelled" ? "cancelled: nothing it did was kept"
       : j.state === "queued" ? "waiting for a worker"
-      : j.state === "cancelling" ? "stopping…" : `${Math.round(j.progress * 100)} %, ${eta(j, now)}`;
+      : j.state === "cancelling" ? "stopping…" : `${Math.round(j.progress * 100)} %, ${eta(j, now)}`
+        + (j.message ? ` (${j.message})` : "");  // e.g. "compiling kernels, first run only"
     return el("div", { class: `job ${j.state}`, "data-job": j.id, "data-state": j.state },
       el("div", { class: "head" }, el("span", {}, describeJob(j)),
         running && j.kind !== "delete" && j.state !== "cancelling"
