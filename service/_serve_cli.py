@@ -59,6 +59,16 @@ def _log_config() -> dict[str, Any]:
     return config
 
 
+def _kernels_note(scheduler: str | None) -> str:
+    """What numba's cache holds: a cold cache means the first jobs compile their kernels."""
+    from .warmup import cache_note
+
+    note = cache_note()
+    if scheduler:
+        note += " (this machine's cache: workers on other machines read their own)"
+    return note
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
     from rangefuse.storage import Store
@@ -68,6 +78,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     settings = _settings(args)
     app = create_app(settings)  # creates the store when missing
+    print(f"kernels: {_kernels_note(settings.scheduler)}", flush=True)
     with Store.open(settings.data_dir) as store, Accounts(store.catalog.path) as accounts:
         if accounts.n_tokens() == 0:
             token = accounts.create_token("default")

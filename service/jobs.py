@@ -9,6 +9,8 @@ in this process, and the catalog never leaves it.
 - A worker that dies mid-unit is replaced and its units run again: the job completes with
   the same bits. A unit that keeps killing workers fails its job with a message that names
   its scans; the queue goes on.
+- A job whose unit waits on a worker compiling kernels (a cold numba cache) says so in its
+  ``message`` (:class:`_Compilations`; the workers report it, :mod:`service.worker`).
 - ``cancel`` stops a job between units (nothing is committed; what was staged is dropped by
   the next run): the job reads ``cancelled``.
 - Stopping the service (SIGTERM) interrupts the running jobs the same way and puts them back
@@ -24,9 +26,10 @@ import logging
 import threading
 import time
 import uuid
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from rangefuse.storage import Store, open_scene
@@ -39,8 +42,10 @@ from .cluster import Cluster, RunInterruptedError, UnitFailedError
 from .previews import make_preview
 from .queue import JobQueue, JobRow
 from .settings import Settings
+from .warmup import COMPILING
+from .worker import COMPILE_TOPIC, OnJob
 
-__all__ = ["JobRunner", "new_id", "run_job"]
+__all__ = ["COMPILING_MESSAGE", "JobRunner", "new_id", "run_job"]
 
 log = logging.getLogger("rangefuse.jobs")
 
@@ -52,6 +57,16 @@ _JOB_DISK_FULL = (
     "fused; the others stay stored). Free space, then upload again or ask for a "
     "reconstruction to carry on"
 )
+
+
+#: A running job's ``message`` while a worker compiles kernels that its units need.
+COMPILING_MESSAGE = (
+    f"{COMPILING} (a worker compiles the kernels this job needs: up to 2 minutes; "
+    "`rangefuse warmup` compiles them ahead of time)"
+)
+
+Item = TypeVar("Item")
+Result = TypeVar("Result")
 
 
 def new_id() -> str:
@@ -111,6 +126,67 @@ def _reconstruct(scene: Scene, queue: JobQueue, job: JobRow) -> dict[str, Any]:
             **counts}  # fmt: skip
 
 
+class _OnJobRunner:
+    """A job's runner whose units report the compilations they cause as the job's
+    (:class:`service.worker.OnJob`)."""
+
+    def __init__(self, runner: Runner, job_id: str) -> None:
+        self.runner = runner
+        self.job_id = job_id
+
+    @property
+    def workers(self) -> int:
+        return self.runner.workers
+
+    def map(self, fn: Callable[[Item], Result], units: Sequence[Item]) -> list[Result]:
+        return self.runner.map(OnJob(fn, self.job_id), units)
+
+
+class _Compilations:
+    """Which jobs wait on a worker compiling kernels: fed with the workers' events
+    (:data:`service.worker.COMPILE_TOPIC`, in the Dask client's thread); ``changes()`` hands
+    the jobs whose answer changed to the thread that records them."""
+
+    def __init__(self, changed: Callable[[], None]) -> None:
+        self._lock = threading.Lock()
+        self._workers: dict[str, set[str]] = {}  # job -> workers compiling for it
+        self._changes: dict[str, bool] = {}
+        self._changed = changed
+
+    def on_event(self, event: tuple[float, Any]) -> None:
+        """A worker's event ``(timestamp, {"job", "worker", "compiling"})``."""
+        _, msg = event
+        try:
+            job_id, worker, compiling = str(msg["job"]), str(msg["worker"]), bool(msg["compiling"])
+        except (TypeError, KeyError):
+            log.warning("ignored a malformed compilation event: %r", msg)
+            return
+        with self._lock:
+            workers = self._workers.setdefault(job_id, set())
+            before = bool(workers)
+            if compiling:
+                workers.add(worker)
+            else:
+                workers.discard(worker)
+            if bool(workers) != before:
+                self._changes[job_id] = bool(workers)
+            if not workers:
+                del self._workers[job_id]
+        self._changed()
+
+    def changes(self) -> dict[str, bool]:
+        """The jobs whose state changed since the last call: whether they wait now."""
+        with self._lock:
+            changes, self._changes = self._changes, {}
+        return changes
+
+    def forget(self, job_id: str) -> None:
+        """The job ended (a worker that died mid-compilation never reports its end)."""
+        with self._lock:
+            self._workers.pop(job_id, None)
+            self._changes.pop(job_id, None)
+
+
 @dataclass
 class _Running:
     thread: threading.Thread
@@ -129,6 +205,7 @@ class JobRunner:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._wake = threading.Event()
+        self._compilations = _Compilations(self._wake.set)
         self._thread = threading.Thread(target=self._loop, name="rangefuse-jobs", daemon=True)
 
     def _queue(self) -> JobQueue:
@@ -144,10 +221,17 @@ class JobRunner:
             log.info("resuming %d interrupted jobs", resumed)
         s = self.settings
         self.cluster = Cluster(s.workers, s.worker_memory, s.scheduler)
+        self.cluster.client.subscribe_topic(COMPILE_TOPIC, self._compilations.on_event)
         self._thread.start()
 
     def wake(self) -> None:
         self._wake.set()
+
+    def runner_for(self, job_id: str, interrupted: Callable[[], bool] | None = None) -> Runner:
+        """The runner of job ``job_id``'s units, on the cluster: a worker that compiles
+        kernels for one of them shows on the job's ``message`` while it does."""
+        assert self.cluster is not None
+        return _OnJobRunner(self.cluster.runner(interrupted), job_id)
 
     def workers(self) -> int:
         """Workers that can run units now (0: jobs cannot make progress)."""
@@ -179,12 +263,18 @@ class JobRunner:
         with self._queue() as queue:
             while not self._stop.is_set():
                 try:
+                    self._show_compilations(queue)
                     self._claim(queue)
                 except Exception as exc:  # the catalog cannot be written (a full disk): later
                     log.warning("claiming jobs failed, trying again: %s", exc)
                     self._stop.wait(max(1.0, self.settings.poll_s))
                 self._wake.wait(self.settings.poll_s)
                 self._wake.clear()
+
+    def _show_compilations(self, queue: JobQueue) -> None:
+        """Record on each running job whether a worker compiles kernels for it now."""
+        for job_id, compiling in self._compilations.changes().items():
+            queue.set_message(job_id, COMPILING_MESSAGE if compiling else None)
 
     def _claim(self, queue: JobQueue) -> None:
         """Start queued jobs while fewer than ``settings.jobs`` run (one per scene)."""
@@ -210,11 +300,11 @@ class JobRunner:
         thread.start()
 
     def _carry_out(self, job: JobRow, cancelled: threading.Event) -> None:
-        assert self.cluster is not None
-        runner = self.cluster.runner(lambda: cancelled.is_set() or self._stop.is_set())
+        runner = self.runner_for(job.id, lambda: cancelled.is_set() or self._stop.is_set())
         with Store.open(self.data_dir) as store, JobQueue(store.catalog.path) as queue:
             outcome = self._outcome(store, queue, job, runner, cancelled)
-            self._record(queue, job.id, outcome)
+            self._compilations.forget(job.id)
+            self._record(queue, job.id, outcome)  # clears the job's message
 
     def _outcome(
         self,

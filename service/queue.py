@@ -1,15 +1,20 @@
-"""The job queue: jobs with their state, progress and result, and the meshes they made.
+"""The job queue: jobs with their state, progress, message and result, and the meshes they
+made.
 
 The API process queues jobs; the dispatcher claims them, one running job per scene, and
 worker processes record progress and outcome (:mod:`service.jobs`). A reconstruction job
 records its mesh file in the ``meshes`` table (the latest per scene), which
 ``GET /v1/scenes/{id}/mesh`` serves. Both tables live in the store's SQLite file
 (:mod:`service._database`), so a job survives a restart of the service.
+
+A running job's ``message`` says what it waits on, for people (a worker compiling kernels,
+:mod:`service.worker`); it is cleared when the job leaves ``running``.
 """
 
 from __future__ import annotations
 
 import json
+import sqlite3
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -24,7 +29,8 @@ _SCHEMA = """
 CREATE TABLE IF NOT EXISTS jobs(
     id TEXT PRIMARY KEY, seq INTEGER NOT NULL, tenant TEXT NOT NULL, scene_id TEXT,
     kind TEXT NOT NULL, state TEXT NOT NULL, progress REAL NOT NULL, error TEXT,
-    payload TEXT NOT NULL, result TEXT, created_at REAL NOT NULL, finished_at REAL);
+    payload TEXT NOT NULL, result TEXT, created_at REAL NOT NULL, finished_at REAL,
+    message TEXT);
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state, seq);
 CREATE TABLE IF NOT EXISTS meshes(
     scene_id TEXT PRIMARY KEY, job_id TEXT NOT NULL, path TEXT NOT NULL, etag TEXT NOT NULL,
@@ -49,10 +55,11 @@ class JobRow:
     result: dict[str, Any] | None
     created_at: float
     finished_at: float | None
+    message: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """The job as the API shows it (``error``, ``finished_at`` and ``result`` only when
-        set)."""
+        """The job as the API shows it (``message``, ``error``, ``finished_at`` and
+        ``result`` only when set)."""
         out: dict[str, Any] = {
             "id": self.id,
             "kind": self.kind,
@@ -61,6 +68,8 @@ class JobRow:
             "progress": self.progress,
             "created_at": self.created_at,
         }
+        if self.message is not None:
+            out["message"] = self.message
         if self.error is not None:
             out["error"] = self.error
         if self.finished_at is not None:
@@ -71,15 +80,27 @@ class JobRow:
 
 
 _COLUMNS = (
-    "id, tenant, scene_id, kind, state, progress, error, payload, result, created_at, finished_at"
+    "id, tenant, scene_id, kind, state, progress, error, payload, result, created_at, "
+    "finished_at, message"
 )
 
 
 def _job_row(r: tuple[Any, ...]) -> JobRow:
     return JobRow(
         r[0], r[1], r[2], r[3], r[4], r[5], r[6], json.loads(r[7]),
-        None if r[8] is None else json.loads(r[8]), r[9], r[10],
+        None if r[8] is None else json.loads(r[8]), r[9], r[10], r[11],
     )  # fmt: skip
+
+
+def _add_message_column(db: Database) -> None:
+    """Stores written before jobs had a ``message`` get the column (empty)."""
+    if any(r[1] == "message" for r in db.rows("PRAGMA table_info(jobs)")):
+        return
+    try:
+        db.run("ALTER TABLE jobs ADD COLUMN message TEXT")
+    except sqlite3.OperationalError as exc:  # another process added it meanwhile
+        if "duplicate column" not in str(exc):
+            raise
 
 
 class JobQueue:
@@ -87,6 +108,7 @@ class JobQueue:
 
     def __init__(self, path: Path) -> None:
         self._db = Database(path, _SCHEMA)
+        _add_message_column(self._db)
 
     def close(self) -> None:
         self._db.close()
@@ -212,6 +234,8 @@ class JobQueue:
             if state in _FINAL:
                 sets.append("finished_at=?")
                 args.append(time.time())
+            if state in _FINAL or state == "queued":
+                sets.append("message=NULL")
         if progress is not None:
             sets.append("progress=?")
             args.append(float(progress))
@@ -224,15 +248,28 @@ class JobQueue:
         if sets:
             self._db.run(f"UPDATE jobs SET {', '.join(sets)} WHERE id=?", (*args, job_id))
 
+    def set_message(self, job_id: str, message: str | None) -> bool:
+        """Say what a running job waits on (``None``: nothing); a job that is no longer
+        running keeps none. Returns whether the job was running."""
+        return bool(
+            self._db.run(
+                "UPDATE jobs SET message=? WHERE id=? AND state IN ('running', 'cancelling')",
+                (message, job_id),
+            )
+        )
+
     def requeue_running(self) -> int:
         """Jobs a stopped process left running go back to the queue (restart); those it was
         asked to cancel are cancelled."""
         with self._db.transaction():
             self._db.run(
-                "UPDATE jobs SET state='cancelled', finished_at=? WHERE state='cancelling'",
+                "UPDATE jobs SET state='cancelled', finished_at=?, message=NULL "
+                "WHERE state='cancelling'",
                 (time.time(),),
             )
-            return self._db.run("UPDATE jobs SET state='queued' WHERE state='running'")
+            return self._db.run(
+                "UPDATE jobs SET state='queued', message=NULL WHERE state='running'"
+            )
 
     def cancel(self, job_id: str) -> JobRow | None:
         """Cancel a job: a queued one is ``cancelled`` at once, a running one becomes
@@ -240,7 +277,8 @@ class JobQueue:
         is. Returns the job as it is now."""
         with self._db.transaction():
             self._db.run(
-                "UPDATE jobs SET state='cancelled', finished_at=? WHERE id=? AND state='queued'",
+                "UPDATE jobs SET state='cancelled', finished_at=?, message=NULL "
+                "WHERE id=? AND state='queued'",
                 (time.time(), job_id),
             )
             self._db.run("UPDATE jobs SET state='cancelling' WHERE id=? AND state='running'",

@@ -1,5 +1,7 @@
-"""``rangefuse warmup``: compile every kernel into numba's cache ahead of time; and the
-note that the command line prints when a kernel is compiled (:func:`announce_compilation`).
+"""``rangefuse warmup``: compile every kernel into numba's cache ahead of time; the note
+that the command line prints when a kernel is compiled (:func:`announce_compilation`); and
+what the cache holds (:func:`cache_state`, :func:`cache_note`: ``rangefuse serve`` and each
+worker say at start whether the first jobs will compile).
 
 Fuses and meshes tiny renderings of a small analytic scene with every sensor model, both
 certainty shapes, the filters and the discontinuity test, in mapping and closed mode, so
@@ -11,7 +13,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import pickle
 import time
+from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from . import numba_cache_dir
@@ -20,7 +25,15 @@ from ._progress import note
 if TYPE_CHECKING:
     import numpy as np
 
-__all__ = ["COMPILING", "add_warmup_command", "announce_compilation", "warm_kernels"]
+__all__ = [
+    "COMPILING",
+    "CacheState",
+    "add_warmup_command",
+    "announce_compilation",
+    "cache_note",
+    "cache_state",
+    "warm_kernels",
+]
 
 #: What the command line prints when numba compiles a kernel that its cache does not hold.
 COMPILING = "compiling kernels, first run only"
@@ -55,6 +68,86 @@ def announce_compilation() -> None:
 
 #: Whether :func:`announce_compilation` waits for a compilation to announce.
 _listening = False
+
+
+@dataclass(frozen=True)
+class CacheState:
+    """What numba's cache holds of the engine's kernels (the ones jobs run): ``fresh``
+    kernels built from the engine's current source, ``stale`` ones built from an older
+    source or by another numba (compiled again on first use)."""
+
+    path: Path
+    fresh: int
+    stale: int
+
+    @property
+    def cold(self) -> bool:
+        """No kernel of this engine is cached: the first job compiles every one it needs."""
+        return self.fresh == 0
+
+
+def cache_state() -> CacheState:
+    """Read the index files of the engine's kernels in numba's cache (``NUMBA_CACHE_DIR``,
+    which :mod:`rangefuse.service` sets): one per kernel and line where it starts
+    (``fusion._integrate_kernel.locals.integrate-83.py311.nbi``), holding numba's version
+    and a hash of the kernel's source file, which numba compares before loading a build. A
+    kernel counts as fresh when one of its index files is; the index of a function that no
+    longer exists is left out."""
+    import numba
+    import rangefuse.engine
+    from numba.core.caching import _CacheLocator, _SourceFileBackedLocatorMixin
+
+    engine_dir = Path(rangefuse.engine.__file__).resolve().parent
+    folder = numba_cache_dir() / _CacheLocator.get_suitable_cache_subpath(
+        str(engine_dir / "__init__.py")
+    )
+    sources: dict[str, tuple[str, Any]] = {}  # module -> (its text, numba's stamp of it)
+    kernels: dict[str, bool] = {}  # module.qualname -> whether a fresh build is cached
+    for index in sorted(folder.glob("*.nbi")):
+        kernel = index.name.rsplit("-", 1)[0]
+        module, _, qualname = kernel.partition(".")
+        source = engine_dir / f"{module}.py"
+        if not source.is_file():  # a module that is gone
+            continue
+        if module not in sources:
+            locator = _SourceFileBackedLocatorMixin()
+            locator._py_file = str(source)  # type: ignore[attr-defined]
+            sources[module] = (source.read_text(), locator.get_source_stamp())
+        text, stamp_now = sources[module]
+        if f"def {qualname.rsplit('.', 1)[-1]}(" not in text:  # a function that is gone
+            continue
+        try:
+            with open(index, "rb") as fh:
+                version = pickle.load(fh)
+                stamp, overloads = pickle.loads(fh.read())
+            fresh = version == numba.__version__ and stamp == stamp_now and bool(overloads)
+        except Exception:  # unreadable: numba compiles again
+            fresh = False
+        kernels[kernel] = kernels.get(kernel, False) or fresh
+    n_fresh = sum(kernels.values())
+    return CacheState(numba_cache_dir(), n_fresh, len(kernels) - n_fresh)
+
+
+def cache_note() -> str:
+    """One line on what the cache holds for the service's log: cold, partly out of date, or
+    warm."""
+    try:
+        state = cache_state()
+    except Exception as exc:  # numba's cache layout changed: say so, never stop the service
+        return f"could not read numba's cache {numba_cache_dir()} ({type(exc).__name__}: {exc})"
+    warmup = "`rangefuse warmup` compiles them all ahead of time"
+    if state.cold:
+        return (
+            f"numba's cache {state.path} holds no compiled kernel of this rangefuse: the first "
+            f"jobs compile the kernels they need (up to 2 minutes; jobs say 'compiling kernels' "
+            f"meanwhile); {warmup}"
+        )
+    if state.stale:
+        return (
+            f"numba's cache {state.path} holds {state.fresh} compiled kernels of this rangefuse "
+            f"and {state.stale} out of date: jobs that need those compile them first; {warmup}"
+        )
+    return f"numba's cache {state.path} holds {state.fresh} compiled kernels of this rangefuse"
 
 
 _BOUNDS = (-0.4, -0.4, -0.4, 0.4, 0.4, 0.4)

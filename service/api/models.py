@@ -239,7 +239,8 @@ class Upload(BaseModel):
 
 
 class JobOut(BaseModel):
-    """A job (``error``, ``finished_at`` and ``result`` only once there is one)."""
+    """A job (``message``, ``error``, ``finished_at`` and ``result`` only once there is
+    one)."""
 
     id: str
     kind: str = Field(description="integrate, remove, reconstruct or delete (a scene)")
@@ -249,6 +250,11 @@ class JobOut(BaseModel):
         "or cancelled"
     )
     progress: float = Field(description="0 to 1")
+    message: str | None = Field(
+        default=None,
+        description="what a running job waits on, for people, e.g. 'compiling kernels, first "
+        "run only (...)' while a worker compiles the kernels its units need (docs/service.md)",
+    )
     created_at: float
     error: str | None = None
     finished_at: float | None = None
