@@ -26,6 +26,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -242,6 +243,12 @@ class Cluster:
         self.close()
 
 
+#: How much the local cluster's workers yield to the API process (``nice``): on a machine
+#: they share, requests (an upload's 202 waits on the API process) go before fusion, which
+#: is throughput work that catches up once uploads pause.
+WORKER_NICE = 10
+
+
 class _LocalProcesses:
     """A ``dask scheduler`` and ``workers`` ``dask worker`` processes (each under its nanny,
     which restarts it), children of this process.
@@ -271,11 +278,11 @@ class _LocalProcesses:
             self.close()
             raise RuntimeError(f"starting the local Dask cluster failed: {self._error}")
 
-    def _spawn(self, args: list[str], env: dict[str, str]) -> None:
+    def _spawn(self, args: list[str], env: dict[str, str], nice: int = 0) -> None:
         quiet = subprocess.DEVNULL
         proc = subprocess.Popen(
             [sys.executable, "-m", *args], env=env, stdin=quiet, stdout=quiet, stderr=quiet,
-            preexec_fn=_die_with_parent,
+            preexec_fn=_die_with_parent if nice == 0 else partial(_die_with_parent, nice),
         )  # fmt: skip
         self._procs.append(proc)
 
@@ -301,7 +308,7 @@ class _LocalProcesses:
                 self._spawn(["distributed.cli.dask_worker", self.address, "--nthreads", "1",
                              "--memory-limit", str(memory_limit), "--no-dashboard",
                              "--name", f"local-{i}", "--preload", "rangefuse.service.worker"],
-                            env)  # fmt: skip
+                            env, WORKER_NICE)  # fmt: skip
         except BaseException as exc:
             self._error = exc
         finally:
@@ -322,10 +329,13 @@ class _LocalProcesses:
         self._folder.cleanup()
 
 
-def _die_with_parent() -> None:
-    """In a child before it runs: be killed when the thread that started it ends. Only a
-    call of a function resolved beforehand (no ``dlopen`` between fork and exec)."""
+def _die_with_parent(nice: int = 0) -> None:
+    """In a child before it runs: be killed when the thread that started it ends, and lower
+    its priority by ``nice``. Only calls of functions resolved beforehand (no ``dlopen``
+    between fork and exec)."""
     _PRCTL(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    if nice:
+        os.nice(nice)
 
 
 _PR_SET_PDEATHSIG = 1

@@ -2,12 +2,14 @@
 
 An upload is acknowledged (202) once its scan is archived with fsync and recorded in the
 catalog. Done one upload at a time, each pays its own round of fsyncs, its own catalog and
-queue transactions, and waits for every upload before it. The :class:`UploadCommitter`
-thread takes every upload waiting when it is free and stores them as one batch
-(:meth:`storage.Store.store_scans`: archive entries staged side by side, one round of
-fsyncs, one catalog transaction), queues one ``integrate`` job per scene, records the
-idempotency keys, and then answers them all. A request waits on its future without holding
-a thread of the pool.
+queue transactions, and waits for every upload before it. Each request stages its scan in
+the archive itself, in its own thread (:meth:`storage.Store.stage_scan`: checksum,
+compression and writes, side by side with the other requests); the :class:`UploadCommitter`
+thread takes every staged upload waiting when it is free and commits them as one batch
+(:meth:`storage.Store.commit_scans`: one round of fsyncs, one catalog transaction), queues
+one ``integrate`` job per scene, records the idempotency keys, and then answers them all.
+A request waits on its future without holding a thread of the pool. An upload that is not
+committed (a retry of a recorded key, an error) has its staged folder removed.
 
 Idempotency keys are checked here, in the committer's one thread: a retry that arrives in
 the same batch as its first use waits for the next batch, and then gets the first answer.
@@ -24,11 +26,11 @@ from pathlib import Path
 from typing import Any
 
 from rangefuse.storage import Store
+from rangefuse.storage.store import PendingScan
 
 from .accounts import Accounts
 from .jobs import new_id
 from .queue import JobQueue
-from .uploads import UploadedScan
 
 __all__ = ["UploadCommitter"]
 
@@ -44,7 +46,7 @@ class _Upload:
     tenant: str
     key: str | None
     digest: str | None
-    uploaded: UploadedScan
+    pending: PendingScan
     future: Future[dict[str, Any]] = field(default_factory=Future)
 
 
@@ -79,12 +81,14 @@ class UploadCommitter:
         tenant: str,
         key: str | None,
         digest: str | None,
-        uploaded: UploadedScan,
+        pending: PendingScan,
     ) -> Future[dict[str, Any]]:
-        """Queue an upload; the future answers its response (or raises what refused it)."""
-        upload = _Upload(scene_id, tenant, key, digest, uploaded)
+        """Queue an upload staged by the request (:meth:`Store.stage_scan`); the future
+        answers its response (or raises what refused it)."""
+        upload = _Upload(scene_id, tenant, key, digest, pending)
         with self._ready:
             if self._stopping:
+                Store.discard_scans([pending])
                 raise RuntimeError("the service is stopping")
             self._waiting.append(upload)
             self._ready.notify()
@@ -110,6 +114,7 @@ class UploadCommitter:
                 except BaseException as exc:  # every upload of the batch learns why
                     for upload in batch:
                         if not upload.future.done():
+                            Store.discard_scans([upload.pending])
                             upload.future.set_exception(exc)
                     if not isinstance(exc, Exception):
                         raise
@@ -134,17 +139,17 @@ class UploadCommitter:
                         upload.tenant, upload.key, upload.scene_id, upload.digest
                     )
                 except Exception as exc:  # the key was bound to another scan or scene
+                    Store.discard_scans([upload.pending])
                     upload.future.set_exception(exc)
                     continue
-                if seen is not None:
+                if seen is not None:  # a retry: its staged copy is dropped
+                    Store.discard_scans([upload.pending])
                     upload.future.set_result(seen)
                     continue
             todo.append(upload)
         if not todo:
             return later
-        rows = store.store_scans(
-            [(u.scene_id, new_id(), u.uploaded.scan, u.uploaded.name) for u in todo]
-        )
+        rows = store.commit_scans([u.pending for u in todo])
         jobs: dict[str, str] = {}
         for upload, row in zip(todo, rows, strict=True):
             if isinstance(row, Exception):
@@ -158,7 +163,7 @@ class UploadCommitter:
                     )
                 jobs[upload.scene_id] = job.id
             scan = {"id": row.id, "name": row.name, "state": row.state,
-                    "far_ranges": upload.uploaded.scan.far_ranges}  # fmt: skip
+                    "far_ranges": upload.pending.far_ranges}  # fmt: skip
             response = {"scan": scan, "job": {"id": jobs[upload.scene_id]}}
             if upload.key is not None:
                 self.accounts.remember_response(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -39,8 +40,21 @@ def fsync_paths(paths: Sequence[Path]) -> None:
         for path in paths:
             fsync_path(path)
         return
-    with ThreadPoolExecutor(min(16, len(paths))) as pool:
-        list(pool.map(fsync_path, paths))
+    list(_fsync_pool().map(fsync_path, paths))
+
+
+_POOL_LOCK = threading.Lock()
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _fsync_pool() -> ThreadPoolExecutor:
+    """The process's threads for :func:`fsync_paths`, started once (starting 16 threads for
+    each batch of uploads cost more than their fsyncs)."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(16, thread_name_prefix="rangefuse-fsync")
+        return _POOL
 
 
 def fsync_path(path: Path) -> None:

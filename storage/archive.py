@@ -21,6 +21,7 @@ import os
 import re
 import secrets
 import shutil
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -163,6 +164,9 @@ def _write_entry(root: Path, attrs: dict[str, Any], range_m: np.ndarray) -> list
     return [*files, chunk_dir, chunk_dir.parent, root / RANGE_ARRAY, root]
 
 
+_GROUP_LOCK = threading.Lock()
+
+
 class ScanArchive:
     """The scans of one scene, in the Zarr v3 group at ``group_path`` (``scans/<scan_id>``).
 
@@ -184,6 +188,11 @@ class ScanArchive:
         """Create the scene group and ``scans/`` if missing, durably."""
         if (self.path / "zarr.json").is_file():
             return
+        with _GROUP_LOCK:  # the upload threads of a new scene stage side by side
+            if not (self.path / "zarr.json").is_file():
+                self._create_group()
+
+    def _create_group(self) -> None:
         new_dirs = [p for p in (self.path, *self.path.parents) if not p.exists()]
         scene = zarr.open_group(LocalStore(self.group_path), mode="a", zarr_format=3)
         scene.require_group(SCANS_GROUP)

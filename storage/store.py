@@ -14,6 +14,7 @@ import os
 import shutil
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +30,7 @@ __all__ = [
     "CACHE_MB",
     "DEFAULT_SCENE",
     "STORE_VERSION",
+    "PendingScan",
     "SceneConflictError",
     "Store",
     "StoreError",
@@ -75,6 +77,22 @@ class SceneConflictError(StoreError):
 # the store: a directory with a marker, a catalog and scenes
 
 
+@dataclass(frozen=True)
+class PendingScan:
+    """A scan staged in its scene's archive, waiting to be committed
+    (:meth:`Store.stage_scan`, :meth:`Store.commit_scans`)."""
+
+    scene_id: str
+    scan_id: str
+    name: str | None
+    #: The scan's bounding sphere (the catalog's ``origin`` and ``radius``).
+    origin: list[float]
+    radius: float
+    far_ranges: int
+    sensor: dict[str, Any]
+    entry: StagedScan
+
+
 class Store:
     """A store directory: the layout marker, the catalog and one folder per scene.
 
@@ -86,6 +104,8 @@ class Store:
     def __init__(self, path: Path, catalog: Catalog) -> None:
         self.path = path
         self.catalog = catalog
+        #: Threads that stage a batch of scans side by side (:meth:`store_scans`).
+        self._stage_pool: ThreadPoolExecutor | None = None
 
     @staticmethod
     def open(path: str | os.PathLike[str], create: bool = False) -> Store:
@@ -119,6 +139,8 @@ class Store:
         return Store(path, catalog)
 
     def close(self) -> None:
+        if self._stage_pool is not None:
+            self._stage_pool.shutdown()
         self.catalog.close()
 
     def __enter__(self) -> Store:
@@ -180,62 +202,105 @@ class Store:
 
     def store_scans(self, items: Sequence[NewScan]) -> list[ScanRow | Exception]:
         """Store scans that arrived together, ``(scene_id, scan_id, scan, name)`` each, with
-        one round of fsyncs and one catalog transaction (a group commit): each is staged in
-        its scene's archive (side by side, in threads), all staged entries are published at
-        once, then all catalog rows are written in one transaction. Returns, in order, each
-        scan's row or the error that refused it (a bad scan fails alone); an error of the
-        shared steps (a full disk) fails every scan of the batch, and nothing of it stays.
-        """
-        results: list[ScanRow | Exception | None] = [None] * len(items)
-        spheres: dict[int, tuple[list[float], float]] = {}
-        for i, (scene_id, scan_id, scan, _) in enumerate(items):
-            try:  # the catalog is read in this thread only (its connection is this thread's)
-                _, params = self.scene_spec(scene_id)
-                if self.catalog.scan(scene_id, scan_id) is not None:
-                    raise SceneConflictError(f"scan {scan_id!r} is already in the scene")
-                origin, radius = bounding_sphere(scan, params)  # NumPy only: no kernel here
-                spheres[i] = (origin.tolist(), float(radius))
+        one round of fsyncs and one catalog transaction (a group commit): each is staged
+        (:meth:`stage_scan`, side by side in threads), then all are committed at once
+        (:meth:`commit_scans`). Returns, in order, each scan's row or the error that refused
+        it (a bad scan fails alone); an error of the shared steps (a full disk) fails every
+        scan of the batch, and nothing of it stays."""
+        checked: list[tuple[list[float], float] | Exception] = []
+        for scene_id, scan_id, scan, _ in items:  # the catalog, in this thread (its connection)
+            try:
+                checked.append(self._check_new(scene_id, scan_id, scan))
             except Exception as exc:
-                results[i] = exc
-        todo = sorted(spheres)
-        with ThreadPoolExecutor(min(4, max(1, len(todo)))) as pool:
-            staged = dict(zip(todo, pool.map(lambda i: self._stage(items[i]), todo), strict=True))
-        for i, one in staged.items():
-            if isinstance(one, Exception):
-                results[i] = one
-        entries = {i: one for i, one in staged.items() if isinstance(one, StagedScan)}
+                checked.append(exc)
+        if self._stage_pool is None:  # started once: threads cost more than a batch's work
+            self._stage_pool = ThreadPoolExecutor(4, thread_name_prefix="rangefuse-stage")
+
+        def stage(i: int) -> PendingScan | Exception:
+            sphere = checked[i]
+            if isinstance(sphere, Exception):
+                return sphere
+            try:
+                return self._stage(*items[i], *sphere)
+            except Exception as exc:
+                return exc
+
+        staged = list(self._stage_pool.map(stage, range(len(items))))
+        ready = [one for one in staged if isinstance(one, PendingScan)]
+        committed = iter(self.commit_scans(ready))
+        return [one if isinstance(one, Exception) else next(committed) for one in staged]
+
+    def _check_new(self, scene_id: str, scan_id: str, scan: Scan) -> tuple[list[float], float]:
+        """The bounding sphere of a scan new to the scene (errors for an unknown scene or a
+        scan id it holds)."""
+        _, params = self.scene_spec(scene_id)
+        if self.catalog.scan(scene_id, scan_id) is not None:
+            raise SceneConflictError(f"scan {scan_id!r} is already in the scene")
+        origin, radius = bounding_sphere(scan, params)  # NumPy only: no kernel here
+        return origin.tolist(), float(radius)
+
+    def _stage(
+        self, scene_id: str, scan_id: str, scan: Scan, name: str | None, origin: list[float],
+        radius: float,
+    ) -> PendingScan:  # fmt: skip
+        entry = self._archive(scene_id).stage(scan_id, scan, name)
+        return PendingScan(
+            scene_id, scan_id, name, origin, radius, scan.far_ranges, scan.sensor.to_dict(),
+            entry,
+        )  # fmt: skip
+
+    def stage_scan(
+        self, scene_id: str, scan_id: str, scan: Scan, name: str | None = None
+    ) -> PendingScan:
+        """Write a scan into its scene's archive, not yet durable nor visible: the first half
+        of storing it, which any thread may do (the service does it in the upload's request
+        thread); :meth:`commit_scans` makes it durable and visible, many at once, and
+        :meth:`discard_scans` drops it. A process that dies in between leaves a temporary
+        folder that :meth:`cleanup_uploads` removes.
+
+        Raises
+        ------
+        StoreError
+            For an unknown scene; :class:`SceneConflictError` for a scan id it holds.
+        """
+        return self._stage(scene_id, scan_id, scan, name, *self._check_new(scene_id, scan_id, scan))
+
+    def commit_scans(self, pending: Sequence[PendingScan]) -> list[ScanRow | Exception]:
+        """Make staged scans durable and visible with one round of fsyncs and one catalog
+        transaction (a group commit). Returns, in order, each scan's row or the error that
+        refused it; an error of the shared steps (a full disk) fails every scan, and nothing
+        of them stays."""
         try:
-            for archive, group in _by_archive(list(entries.values())):
+            for archive, group in _by_archive([p.entry for p in pending]):
                 archive.publish(group)
             with self.catalog.transaction():
-                for i, entry in entries.items():
-                    scene_id, scan_id, scan, name = items[i]
+                for p in pending:
                     self.catalog.add_scan(
-                        scene_id, scan_id, name, *spheres[i], entry.checksum, scan.far_ranges
-                    )
+                        p.scene_id, p.scan_id, p.name, p.origin, p.radius, p.entry.checksum,
+                        p.far_ranges,
+                    )  # fmt: skip
                     # a scene without a sensor of its own takes its first scan's
-                    self.catalog.set_scene_sensor(scene_id, scan.sensor.to_dict(), True)
+                    self.catalog.set_scene_sensor(p.scene_id, p.sensor, True)
         except Exception as exc:
-            for i, entry in entries.items():
-                shutil.rmtree(entry.tmp, ignore_errors=True)
+            self.discard_scans(pending)
+            for p in pending:
                 with contextlib.suppress(Exception):
-                    self._archive(items[i][0]).delete(entry.scan_id)
-                results[i] = exc
-            return [r if r is not None else Exception("not stored") for r in results]
-        for i in entries:
-            results[i] = self.catalog.scan(items[i][0], items[i][1])
-        return [r if r is not None else Exception("not stored") for r in results]
+                    self._archive(p.scene_id).delete(p.scan_id)
+            return [exc for _ in pending]
+        rows: list[ScanRow | Exception] = []
+        for p in pending:
+            row = self.catalog.scan(p.scene_id, p.scan_id)
+            rows.append(row if row is not None else StoreError(f"scan {p.scan_id!r} vanished"))
+        return rows
+
+    @staticmethod
+    def discard_scans(pending: Sequence[PendingScan]) -> None:
+        """Remove staged scans that will not be committed."""
+        for p in pending:
+            shutil.rmtree(p.entry.tmp, ignore_errors=True)
 
     def _archive(self, scene_id: str) -> ScanArchive:
         return ScanArchive(self.scene_path(scene_id) / "scene.zarr")
-
-    def _stage(self, item: NewScan) -> StagedScan | Exception:
-        """Stage one scan in its scene's archive (or the error that refused it)."""
-        scene_id, scan_id, scan, name = item
-        try:
-            return self._archive(scene_id).stage(scan_id, scan, name)
-        except Exception as exc:
-            return exc
 
     def cleanup_uploads(self, scene_id: str) -> dict[str, int]:
         """Delete archive entries that were never acknowledged (a kill between the archive

@@ -10,6 +10,12 @@ may use, and FastAPI runs each synchronous dependency and route in any thread of
 so ``StoreDep`` is a function that returns *this thread's* store (opened on first use), to
 be called where it is used: ``store().catalog.scene(...)``. The accounts and the job queue
 open a connection per thread themselves (:mod:`service._database`).
+
+The dependencies are coroutines: FastAPI runs a plain ``def`` dependency in its thread pool,
+a hop of a few hundred microseconds of the event loop's time each, and an upload had nine
+(most of its time in the loop under load). The token, scene and deletion lookups are one
+indexed read each of a WAL database, whose readers never wait on a writer, so they run on
+the event loop's thread (which has its own connections, as every thread does).
 """
 
 from __future__ import annotations
@@ -80,27 +86,27 @@ def _services(request: Request) -> Services:
     return services
 
 
-def get_settings(request: Request) -> Settings:
+async def get_settings(request: Request) -> Settings:
     return _services(request).settings
 
 
-def get_store(request: Request) -> StoreOpener:
+async def get_store(request: Request) -> StoreOpener:
     return _services(request).store
 
 
-def get_accounts(request: Request) -> Accounts:
+async def get_accounts(request: Request) -> Accounts:
     return _services(request).accounts
 
 
-def get_queue(request: Request) -> JobQueue:
+async def get_queue(request: Request) -> JobQueue:
     return _services(request).queue
 
 
-def get_jobs(request: Request) -> JobRunner:
+async def get_jobs(request: Request) -> JobRunner:
     return _services(request).jobs
 
 
-def get_commits(request: Request) -> UploadCommitter:
+async def get_commits(request: Request) -> UploadCommitter:
     return _services(request).commits
 
 
@@ -122,7 +128,7 @@ def _caller(accounts: Accounts, authorization: str | None) -> Caller:
     return found
 
 
-def current_tenant(
+async def current_tenant(
     accounts: AccountsDep, authorization: Annotated[str | None, Header()] = None
 ) -> str:
     """The tenant of the request's bearer token (401 without a valid one, 403 for an admin
@@ -137,7 +143,7 @@ def current_tenant(
     return caller.tenant
 
 
-def current_admin(
+async def current_admin(
     accounts: AccountsDep, authorization: Annotated[str | None, Header()] = None
 ) -> str:
     """The name on the request's admin token (401 without a valid token, 403 for a tenant's
@@ -156,7 +162,7 @@ CurrentTenant = Annotated[str, Depends(current_tenant)]
 CurrentAdmin = Annotated[str, Depends(current_admin)]
 
 
-def owned_scene(scene_id: str, who: CurrentTenant, store: StoreDep) -> SceneRow:
+async def owned_scene(scene_id: str, who: CurrentTenant, store: StoreDep) -> SceneRow:
     """The scene ``scene_id`` of the path; 404 when it does not exist or is another tenant's
     (the two look the same)."""
     row = store().catalog.scene(scene_id)
@@ -168,7 +174,7 @@ def owned_scene(scene_id: str, who: CurrentTenant, store: StoreDep) -> SceneRow:
 OwnedScene = Annotated[SceneRow, Depends(owned_scene)]
 
 
-def tenant_scene(scene: OwnedScene, queue: QueueDep) -> SceneRow:
+async def tenant_scene(scene: OwnedScene, queue: QueueDep) -> SceneRow:
     """The caller's scene, unless it is being deleted (409 naming the deletion's job)."""
     deletion = queue.deletion(scene.id)
     if deletion is not None:

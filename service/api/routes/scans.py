@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 from pathlib import PurePosixPath, PureWindowsPath
 from typing import Annotated, Any
 
@@ -12,11 +11,14 @@ from fastapi.concurrency import run_in_threadpool
 from python_multipart.multipart import MultipartParser, parse_options_header
 from rangefuse.engine import sensor_from_dict
 from rangefuse.engine.params import params_of
+from rangefuse.storage.catalog import SceneRow
+from rangefuse.storage.store import PendingScan
 from starlette.requests import ClientDisconnect
 
 from ...accounts import upload_digest
 from ...budgets import check_upload
 from ...jobs import new_id
+from ...settings import Settings
 from ...uploads import decode_scan
 from ..deps import (
     CommitsDep,
@@ -25,6 +27,7 @@ from ..deps import (
     QueueDep,
     SettingsDep,
     StoreDep,
+    StoreOpener,
     TenantScene,
 )
 from ..limits import BodyTooLargeError
@@ -80,13 +83,14 @@ class _Parts:
     temporary file, one thread hop per chunk: most of an upload's time in the event loop."""
 
     def __init__(self) -> None:
-        self.parts: dict[str, bytearray] = {}
+        #: Each part's pieces, joined once at the end (one copy of the data, not one a chunk).
+        self.parts: dict[str, list[bytes]] = {}
         #: The ``filename`` of each part that has one.
         self.filenames: dict[str, str] = {}
         self._header = b""
         self._value = b""
         self._headers: dict[bytes, bytes] = {}
-        self._current: bytearray | None = None
+        self._current: list[bytes] | None = None
 
     def callbacks(self) -> dict[str, Any]:
         return {
@@ -119,11 +123,11 @@ class _Parts:
         name = options.get(b"name", b"").decode("utf-8", "replace")
         if options.get(b"filename"):
             self.filenames[name] = options[b"filename"].decode("utf-8", "replace")
-        self._current = self.parts.setdefault(name, bytearray())
+        self._current = self.parts.setdefault(name, [])
 
     def _data(self, data: bytes, start: int, end: int) -> None:
         if self._current is not None:
-            self._current += data[start:end]
+            self._current.append(data if start == 0 and end == len(data) else data[start:end])
 
 
 async def _read_parts(request: Request, max_upload_mb: float) -> tuple[dict[str, bytes], str]:
@@ -153,7 +157,7 @@ async def _read_parts(request: Request, max_upload_mb: float) -> tuple[dict[str,
     for field in ("range", "meta"):
         if field not in found.parts:
             raise HTTPException(400, f"{field}: missing part")
-        parts[field] = bytes(found.parts.pop(field))
+        parts[field] = b"".join(found.parts.pop(field))
     filename = found.filenames.get("range", "")
     stem = PurePosixPath(PureWindowsPath(filename).name).stem.strip()
     return parts, stem[:200] if stem.isprintable() else ""
@@ -183,20 +187,33 @@ async def upload_scan(
     if idempotency_key is not None and not 0 < len(idempotency_key) <= 200:
         raise HTTPException(400, "Idempotency-Key: must be 1 to 200 characters")
     parts, filename = await _read_parts(request, settings.max_upload_mb)
-    sensor = None if scene.sensor is None else sensor_from_dict(scene.sensor)
-    uploaded = await run_in_threadpool(
-        decode_scan, parts["range"], parts["meta"], settings.max_pixels, sensor
+    # one hop to a thread for all the request's work off the event loop
+    pending, digest = await run_in_threadpool(
+        _prepare, parts, filename, scene, store, settings, idempotency_key is not None
     )
-    if uploaded.name is None and filename:  # named after its file unless meta.name is given
-        uploaded = dataclasses.replace(uploaded, name=filename)
-    await run_in_threadpool(check_upload, store, scene, uploaded.scan, settings)  # budgets
-    digest = None
-    if idempotency_key is not None:
-        digest = await run_in_threadpool(upload_digest, parts["range"], parts["meta"])
-    future = commits.submit(scene.id, who, idempotency_key, digest, uploaded)
+    future = commits.submit(scene.id, who, idempotency_key, digest, pending)
     response = await asyncio.wrap_future(future)  # stored with the uploads beside it
     jobs.wake()
     return response
+
+
+def _prepare(
+    parts: dict[str, bytes],
+    filename: str,
+    scene: SceneRow,
+    store: StoreOpener,
+    settings: Settings,
+    with_digest: bool,
+) -> tuple[PendingScan, str | None]:
+    """Decode an upload's parts into a scan (named after its file unless ``meta.name`` is
+    given), check it against the budgets, stage it in the scene's archive for the group
+    commit, and hash the parts when an idempotency key needs it."""
+    sensor = None if scene.sensor is None else sensor_from_dict(scene.sensor)
+    uploaded = decode_scan(parts["range"], parts["meta"], settings.max_pixels, sensor)
+    name = uploaded.name if uploaded.name is not None else (filename or None)
+    check_upload(store, scene, uploaded.scan, settings)
+    digest = upload_digest(parts["range"], parts["meta"]) if with_digest else None
+    return store().stage_scan(scene.id, new_id(), uploaded.scan, name), digest
 
 
 @router.get("", response_model=list[ScanOut])
