@@ -23,8 +23,13 @@ def test_every_json_route_has_a_response_model() -> None:
         r for router in ROUTERS for r in router.routes
         if isinstance(r, APIRoute) and r.include_in_schema
     ]  # fmt: skip
-    assert len(routes) == 16
-    binary = {"/metrics", "/v1/scenes/{scene_id}/mesh", "/v1/scenes/{scene_id}/slice"}
+    assert len(routes) == 18
+    binary = {
+        "/metrics",
+        "/v1/scenes/{scene_id}/mesh",
+        "/v1/scenes/{scene_id}/slice",
+        "/v1/scenes/{scene_id}/preview",
+    }
     for route in routes:
         if route.path in binary or route.status_code == 204:
             continue
@@ -57,7 +62,7 @@ def test_openapi_shows_the_models(app) -> None:
         "meta",
     }
     tags = {op["tags"][0] for ops in spec["paths"].values() for op in ops.values()}
-    assert tags == {"scenes", "scans", "reconstructions", "slices", "jobs", "service"}
+    assert tags == {"scenes", "scans", "reconstructions", "slices", "jobs", "service", "viewer"}
 
 
 def test_response_models_keep_the_answers_fields() -> None:

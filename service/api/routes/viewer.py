@@ -17,7 +17,7 @@ from ..models import problems
 __all__ = ["router"]
 
 router = APIRouter(
-    prefix="/v1/scenes/{scene_id}", tags=["viewer"], responses=problems(401, 403, 404, 409)
+    prefix="/v1/scenes/{scene_id}", tags=["viewer"], responses=problems(401, 403, 404, 409, 422)
 )
 
 
