@@ -25,11 +25,13 @@ import importlib.util
 import json
 import os
 import resource
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _children import run_child
 
 #: Lengths run at each voxel size by default (metres); 1 cm runs into a store only.
 DEFAULT_LENGTHS = {0.1: "40,160,640,2500", 0.05: "40,160,640", 0.01: "8,24"}
@@ -160,16 +162,6 @@ def _child_octomap(cfg: dict) -> dict:
     }
 
 
-def _run_child(cfg: dict) -> dict:
-    out = subprocess.run(
-        [sys.executable, __file__, "--child", json.dumps(cfg)], capture_output=True, text=True
-    )
-    if out.returncode != 0:
-        print(out.stderr[-3000:], file=sys.stderr)
-        raise SystemExit(out.returncode)
-    return json.loads(out.stdout.strip().splitlines()[-1])
-
-
 def _fmt(x: float | None, spec: str) -> str:
     return "-" if x is None else format(x, spec)
 
@@ -264,7 +256,7 @@ def main() -> None:
     print("-" * len(header))
     results = []
     for cfg in configs:
-        r = _run_child(cfg)
+        r = run_child(__file__, cfg)
         results.append(r)
         print(_row(r), flush=True)
     pairs = {}

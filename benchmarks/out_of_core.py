@@ -29,6 +29,9 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _children import run_child
+
 BIN = Path(sys.executable).parent
 
 
@@ -155,16 +158,6 @@ class ExternalCluster:
                 proc.kill()
 
 
-def _run_child(cfg: dict) -> dict:
-    out = subprocess.run(
-        [sys.executable, __file__, "--child", json.dumps(cfg)], capture_output=True, text=True
-    )
-    if out.returncode != 0:
-        print(out.stderr[-3000:], file=sys.stderr)
-        raise SystemExit(out.returncode)
-    return json.loads(out.stdout.strip().splitlines()[-1])
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="6 m of street at 4 cm")
@@ -204,11 +197,11 @@ def main() -> None:
             with tempfile.TemporaryDirectory(dir=args.tmp) as tmp:
                 external = ExternalCluster(Path(tmp), args.workers)
                 try:
-                    r = _run_child(dict(cfg, scheduler=external.address))
+                    r = run_child(__file__, dict(cfg, scheduler=external.address))
                 finally:
                     external.close()
         else:
-            r = _run_child(cfg)
+            r = run_child(__file__, cfg)
         results.append(r)
         workers_rss = "/".join(f"{x:.0f}" for x in r["workers_rss_mb"]) or "-"
         print(
