@@ -217,3 +217,63 @@ def _used(path: Path) -> int:
 def _remount(path: Path, size_bytes: int) -> None:
     size_kb = size_bytes // 1024 + 1
     subprocess.run(["mount", "-o", f"remount,size={size_kb}k", str(path)], check=True)
+
+
+def test_an_upload_cancelled_while_staging_leaves_no_folder_behind(tmp_path, room) -> None:
+    """The server stopping under a request (its task cancelled) before the request's thread
+    has staged the scan: once the thread has staged it, the staged folder is removed and
+    nothing is stored."""
+    import asyncio
+    import threading
+
+    from rangefuse.engine import FusionParams, GridSpec, NoiseModel
+    from rangefuse.service.api.routes.scans import _staged
+    from rangefuse.service.settings import Settings
+
+    _, scan = room.scans[0]
+    parts = {"range": _npy(scan.range_m), "meta": _meta(scan).encode()}
+    cancelled, staged = threading.Event(), []
+
+    class Staging:
+        """The store, with a staging that waits until the request is cancelled."""
+
+        def __init__(self, store: Store) -> None:
+            self._store = store
+
+        def __getattr__(self, name: str):
+            return getattr(self._store, name)
+
+        def stage_scan(self, *args):
+            assert cancelled.wait(30)
+            pending = self._store.stage_scan(*args)
+            staged.append(pending.entry.tmp)
+            return pending
+
+    with Store.open(tmp_path / "data", create=True) as store:
+        store.create_scene("s", GridSpec(H, 8), FusionParams(NoiseModel(2 * H, 0.05)))
+        local = threading.local()
+
+        def opener() -> Staging:  # one store per thread, as the service's (SQLite's rule)
+            if not hasattr(local, "store"):
+                local.store = Store.open(tmp_path / "data")  # left open: closed by no other thread
+            return Staging(local.store)
+
+        async def cancel_while_staging() -> None:
+            row = store.catalog.scene("s")
+            task = asyncio.ensure_future(
+                _staged(parts, "r", row, opener, Settings(data_dir=tmp_path), False)
+            )
+            await asyncio.sleep(0.05)  # the thread is at work
+            task.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await task
+            cancelled.set()
+            for _ in range(600):  # the thread stages the scan, then the folder goes
+                await asyncio.sleep(0.05)
+                if staged and not os.path.exists(staged[0]):
+                    break
+
+        asyncio.run(cancel_while_staging())
+        assert staged and not os.path.exists(staged[0])
+        assert not [n for n in os.listdir(staged[0].parent) if n.startswith(".tmp")]
+        assert store.catalog.scans("s") == []

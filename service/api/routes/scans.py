@@ -12,7 +12,7 @@ from python_multipart.multipart import MultipartParser, parse_options_header
 from rangefuse.engine import sensor_from_dict
 from rangefuse.engine.params import params_of
 from rangefuse.storage.catalog import SceneRow
-from rangefuse.storage.store import PendingScan
+from rangefuse.storage.store import PendingScan, Store
 from starlette.requests import ClientDisconnect
 
 from ...accounts import upload_digest
@@ -187,14 +187,39 @@ async def upload_scan(
     if idempotency_key is not None and not 0 < len(idempotency_key) <= 200:
         raise HTTPException(400, "Idempotency-Key: must be 1 to 200 characters")
     parts, filename = await _read_parts(request, settings.max_upload_mb)
-    # one hop to a thread for all the request's work off the event loop
-    pending, digest = await run_in_threadpool(
-        _prepare, parts, filename, scene, store, settings, idempotency_key is not None
+    pending, digest = await _staged(
+        parts, filename, scene, store, settings, idempotency_key is not None
     )
     future = commits.submit(scene.id, who, idempotency_key, digest, pending)
     response = await asyncio.wrap_future(future)  # stored with the uploads beside it
     jobs.wake()
     return response
+
+
+async def _staged(
+    parts: dict[str, bytes],
+    filename: str,
+    scene: SceneRow,
+    store: StoreOpener,
+    settings: Settings,
+    with_digest: bool,
+) -> tuple[PendingScan, str | None]:
+    """:func:`_prepare` in one hop to a thread (all the request's work off the event loop).
+    Cancelled (the server stopping under the request), it removes what the thread staged."""
+    work = asyncio.ensure_future(
+        run_in_threadpool(_prepare, parts, filename, scene, store, settings, with_digest)
+    )
+    try:
+        return await asyncio.shield(work)
+    except asyncio.CancelledError:
+        work.add_done_callback(_discard_staged)
+        raise
+
+
+def _discard_staged(work: asyncio.Future[tuple[PendingScan, str | None]]) -> None:
+    """Remove the scan a cancelled request staged (nothing when staging itself failed)."""
+    if not work.cancelled() and work.exception() is None:
+        Store.discard_scans([work.result()[0]])
 
 
 def _prepare(
