@@ -144,10 +144,15 @@ class DaskRunner:
         """Workers now (at least 1): how many parts a scene splits its tiles into."""
         return max(1, len(self.client.scheduler_info(n_workers=-1)["workers"]))
 
-    def map(self, fn: Callable[[Item], Result], units: Sequence[Item]) -> list[Result]:
-        """Run ``fn`` on every unit; each unit is submitted once a worker thread is free for it
-        (:class:`_Slots`), so a worker holds the one unit it runs, and a worker's death is
-        blamed on that unit alone."""
+    def map(
+        self,
+        fn: Callable[[Item], Result],
+        units: Sequence[Item],
+        done: Callable[[int], None] | None = None,
+    ) -> list[Result]:
+        """Run ``fn`` on every unit (``done(i)`` as unit ``i`` finishes); each unit is
+        submitted once a worker thread is free for it (:class:`_Slots`), so a worker holds the
+        one unit it runs, and a worker's death is blamed on that unit alone."""
         results: dict[int, Result] = {}
         running: dict[Future, int] = {}
         waiting = list(range(len(units)))[::-1]
@@ -158,13 +163,14 @@ class DaskRunner:
                 while waiting and self.slots.acquire():
                     i = waiting.pop()
                     running[self.client.submit(fn, units[i], pure=False)] = i
-                done = self._first_done(list(running))
-                for future in done:
+                for future in self._first_done(list(running)):
                     i = running.pop(future)
                     self.slots.release()
                     if future.status == "error":
                         self._raise(units[i], future)
                     results[i] = future.result()
+                    if done is not None:
+                        done(i)
             return [results[i] for i in range(len(units))]
         finally:
             if running:

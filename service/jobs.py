@@ -83,30 +83,44 @@ def run_job(
     t0 = time.perf_counter()
     with open_scene(store, job.scene_id, cache_mb, runner, wait=True) as scene:
 
-        def progress(done: int, total: int) -> None:
-            queue.update_job(job.id, progress=done / max(total, 1))
+        def progress(lo: float, hi: float) -> Callable[[int, int], None]:
+            """Reports ``done`` of ``total`` as the job's progress between ``lo`` and ``hi``."""
+            return lambda done, total: queue.update_job(
+                job.id, progress=lo + (hi - lo) * done / max(total, 1)
+            )
 
         result: dict[str, Any]
         if job.kind == "integrate":
-            report = scene.integrate_pending(progress=progress)
+            report = scene.integrate_pending(progress=progress(0.0, 1.0))
             result = {"scans": report.scans, "voxel_updates": report.voxel_updates}
         elif job.kind == "remove":
             scan_id = job.payload["scan_id"]
             removed = scene.remove(scan_id) if scan_id in scene else None
             result = {"scan_id": scan_id, "tiles": 0 if removed is None else removed.tiles_written}
         elif job.kind == "reconstruct":
-            result = _reconstruct(scene, queue, job)
+            result = _reconstruct(scene, queue, job, progress)
         else:
             raise ValueError(f"unknown job kind {job.kind!r}")
     result["seconds"] = time.perf_counter() - t0
     return result
 
 
-def _reconstruct(scene: Scene, queue: JobQueue, job: JobRow) -> dict[str, Any]:
+def _reconstruct(
+    scene: Scene,
+    queue: JobQueue,
+    job: JobRow,
+    progress: Callable[[float, float], Callable[[int, int], None]],
+) -> dict[str, Any]:
+    """Fuse the scans still pending (the first half of the progress when there are any),
+    mesh (up to 90%), save the mesh and its preview."""
+    meshing_from = 0.0
     if scene.scan_rows(("stored",)):
-        scene.integrate_pending()
+        meshing_from = 0.5
+        scene.integrate_pending(progress=progress(0.0, meshing_from))
     mesh, counts = scene.extract_mesh(
-        refine=bool(job.payload.get("refine", True)), bounds=job.payload.get("bounds")
+        refine=bool(job.payload.get("refine", True)),
+        bounds=job.payload.get("bounds"),
+        progress=progress(meshing_from, 0.9),
     )
     path = scene.store.scene_path(scene.scene_id) / "meshes" / f"{job.id}.npz"
     arrays = {"vertices": mesh.vertices, "faces": mesh.faces, "inferred": mesh.inferred}
@@ -138,8 +152,13 @@ class _OnJobRunner:
     def workers(self) -> int:
         return self.runner.workers
 
-    def map(self, fn: Callable[[Item], Result], units: Sequence[Item]) -> list[Result]:
-        return self.runner.map(OnJob(fn, self.job_id), units)
+    def map(
+        self,
+        fn: Callable[[Item], Result],
+        units: Sequence[Item],
+        done: Callable[[int], None] | None = None,
+    ) -> list[Result]:
+        return self.runner.map(OnJob(fn, self.job_id), units, done)
 
 
 class _Compilations:

@@ -24,7 +24,11 @@ from rangefuse.engine.meshing import (
 
 from .catalog import Catalog
 
-__all__ = ["MeshCache", "encode_tile_mesh"]
+__all__ = ["MeshBatches", "MeshCache", "encode_tile_mesh"]
+
+#: Meshes batches of tiles (their keys): each batch's tile meshes (:func:`encode_tile_mesh`),
+#: calling the second argument, when given, with a batch's index as it is done.
+MeshBatches = Callable[[list[np.ndarray], Callable[[int], None] | None], list[list[bytes]]]
 
 
 class MeshCache:
@@ -47,16 +51,17 @@ class MeshCache:
         self,
         existing: np.ndarray,
         grid: GridSpec,
-        mesh: Callable[[list[np.ndarray]], list[list[bytes]]],
+        mesh: MeshBatches,
         *,
         refine: bool,
         bounds: Sequence[float] | None,
-        batch: int,
+        batch: Callable[[int], int],
+        progress: Callable[[int, int], None] | None = None,
     ) -> tuple[Mesh, dict[str, int]]:
         """The surface of a volume whose tiles are ``existing`` as one mesh, re-meshing only
-        the tiles whose epoch moved since they were meshed with the same options (``batch``
-        tiles per call of ``mesh``, which returns each batch's tile meshes encoded by
-        :func:`encode_tile_mesh`); returns the mesh and counts."""
+        the tiles whose epoch moved since they were meshed with the same options, in batches
+        of ``batch(tiles to mesh)`` tiles; returns the mesh and counts.
+        ``progress(tiles, total)``: the tiles meshed or reused so far, as batches finish."""
         lo, hi = mesh_region(grid, bounds)
         keys = tiles_to_mesh(existing, grid, lo, hi)
         packed = pack_keys(keys)
@@ -74,8 +79,20 @@ class MeshCache:
         )
         blobs = {p: cached[p][1] for p in packed[hit].tolist()}
         todo = np.flatnonzero(~hit)
-        batches = [todo[start : start + batch] for start in range(0, len(todo), batch)]
-        for rows, meshes in zip(batches, mesh([keys[rows] for rows in batches]), strict=True):
+        size = max(1, batch(len(todo)))
+        batches = [todo[start : start + size] for start in range(0, len(todo), size)]
+        finished = int(hit.sum())
+
+        def done(i: int) -> None:
+            nonlocal finished
+            finished += len(batches[i])
+            if progress is not None:
+                progress(finished, len(keys))
+
+        if progress is not None:
+            progress(finished, len(keys))
+        meshed = mesh([keys[rows] for rows in batches], done if progress is not None else None)
+        for rows, meshes in zip(batches, meshed, strict=True):
             entries = [
                 (int(packed[r]), int(epochs[r]), blob)
                 for r, blob in zip(rows.tolist(), meshes, strict=True)

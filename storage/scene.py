@@ -453,23 +453,34 @@ class Scene:
         return dense_logodds(self.tile_store, self.grid, bounds)
 
     def extract_mesh(
-        self, *, refine: bool = True, bounds: Sequence[float] | None = None
+        self,
+        *,
+        refine: bool = True,
+        bounds: Sequence[float] | None = None,
+        progress: Progress | None = None,
     ) -> tuple[Mesh, dict[str, int]]:
         """The surface as one mesh, re-meshing (in units of work on the runner) only tiles
         whose data (or halo) changed since they were last meshed with the same options;
-        returns the mesh and counts."""
+        returns the mesh and counts. ``progress(tiles, total)`` as units finish."""
         existing = self.tile_keys()
         spheres = self._spheres()
 
-        def mesh(batches: list[np.ndarray]) -> list[list[bytes]]:
+        def mesh(
+            batches: list[np.ndarray], done: Callable[[int], None] | None
+        ) -> list[list[bytes]]:
             units = [self._mesh_unit(keys, existing, spheres, refine, bounds) for keys in batches]
-            return self.runner.map(mesh_unit, units)
+            return self.runner.map(mesh_unit, units, done)
 
         # a batch's tiles and their neighbours in a 24th of the cache, but not so few that
-        # loading the scans for each batch costs more than meshing it
-        batch = max(_MIN_MESH_BATCH, cache_tiles(self.cache_mb, self.grid.tile_size) // 24)
+        # loading the scans for each batch costs more than meshing it; four units a worker
+        # when there are fewer tiles (every worker busy, progress as units finish)
+        most = max(_MIN_MESH_BATCH, cache_tiles(self.cache_mb, self.grid.tile_size) // 24)
+
+        def batch(todo: int) -> int:
+            return min(most, max(_MIN_MESH_BATCH, -(-todo // (4 * self.runner.workers))))
+
         return self.meshes.extract(
-            existing, self.grid, mesh, refine=refine, bounds=bounds, batch=batch
+            existing, self.grid, mesh, refine=refine, bounds=bounds, batch=batch, progress=progress
         )
 
     def _mesh_unit(

@@ -299,7 +299,14 @@ class Runner(Protocol):
         """How many units it runs at once (a scene splits its tiles into as many parts)."""
         ...
 
-    def map(self, fn: Callable[[Item], Result], units: Sequence[Item]) -> list[Result]: ...
+    def map(
+        self,
+        fn: Callable[[Item], Result],
+        units: Sequence[Item],
+        done: Callable[[int], None] | None = None,
+    ) -> list[Result]:
+        """``fn`` of every unit, in order; ``done(i)`` as unit ``i`` finishes (progress)."""
+        ...
 
 
 class InProcess:
@@ -307,5 +314,15 @@ class InProcess:
 
     workers = 1
 
-    def map(self, fn: Callable[[Item], Result], units: Sequence[Item]) -> list[Result]:
-        return [fn(u) for u in units]
+    def map(
+        self,
+        fn: Callable[[Item], Result],
+        units: Sequence[Item],
+        done: Callable[[int], None] | None = None,
+    ) -> list[Result]:
+        results = []
+        for i, unit in enumerate(units):
+            results.append(fn(unit))
+            if done is not None:
+                done(i)
+        return results

@@ -290,8 +290,13 @@ def test_incremental_meshing_reuses_unchanged_tiles(tmp_path, room):
         np.testing.assert_array_equal(again.vertices, mesh1.vertices)
         scene.store_scan(*room.scans[3])
         scene.integrate_pending()
-        mesh3, counts3 = scene.extract_mesh()
+        seen: list[tuple[int, int]] = []
+        mesh3, counts3 = scene.extract_mesh(progress=lambda *a: seen.append(a))
         assert 0 < counts3["meshed"] < counts3["tiles"]
+        # progress: the reused tiles at once, then as each unit finishes, up to every tile
+        n = counts3["tiles"]
+        assert seen[0] == (counts3["reused"], n) and seen[-1] == (n, n)
+        assert [d for d, _ in seen] == sorted(d for d, _ in seen) and len(seen) >= 2
     fresh = _memory(room.scans[:4], grid).extract_mesh()
     # cached and fresh tile meshes stitch into the bytes of a fresh extraction
     for field in ("vertices", "faces", "inferred", "vertex_keys"):

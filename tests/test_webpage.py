@@ -206,9 +206,32 @@ def test_workflow_in_the_browser(server, dataset, page):
     page.close()
 
 
+def _drop_files(page, target: str, paths: list[Path]) -> None:
+    """Drag files over ``target`` and drop them, as from a file manager: the drop zone
+    lights up while they are over it, and takes them when they are dropped."""
+    import base64
+
+    files = [{"name": p.name, "data": base64.b64encode(p.read_bytes()).decode()} for p in paths]
+    transfer = page.evaluate_handle(
+        """files => {
+            const dt = new DataTransfer();
+            for (const f of files) {
+                const bytes = Uint8Array.from(atob(f.data), c => c.charCodeAt(0));
+                dt.items.add(new File([bytes], f.name));
+            }
+            return dt;
+        }""",
+        files,
+    )
+    page.dispatch_event(target, "dragenter", {"dataTransfer": transfer})
+    assert "over" in page.get_attribute(target, "class")
+    page.dispatch_event(target, "drop", {"dataTransfer": transfer})
+    assert "over" not in page.get_attribute(target, "class")
+
+
 def test_depth_images_take_their_json_or_the_metadata_box(server, page, tmp_path):
-    """A 16-bit PNG depth image with NAME.json beside it is stored; one without is refused in
-    the service's words; the metadata box then supplies what it lacks."""
+    """Dropped on the page, a 16-bit PNG depth image with NAME.json beside it is stored; one
+    without is refused in the service's words; the metadata box then supplies what it lacks."""
     from rangefuse.engine.synth import make_dataset
     from rangefuse.storage.importers import encode_png
 
@@ -224,8 +247,9 @@ def test_depth_images_take_their_json_or_the_metadata_box(server, page, tmp_path
         sid = c.post("/v1/scenes", json=body).json()["id"]
     page.goto(f"{server.url}/?scene={sid}#token={server.token}")
     page.wait_for_selector("#scene-panel:not([hidden])")
-    names = ["depth_a.png", "depth_a.json", "depth_b.png"]
-    page.set_input_files("#files", [str(tmp_path / n) for n in names])
+    _drop_files(
+        page, "#drop", [tmp_path / n for n in ("depth_a.png", "depth_a.json", "depth_b.png")]
+    )
     page.wait_for_function("document.querySelectorAll('#uploads [data-state]').length === 2")
     assert "depth_a.png: stored" in page.inner_text("#uploads [data-state=stored]")
     refused = page.inner_text("#uploads [data-state=refused]")
