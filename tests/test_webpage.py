@@ -264,6 +264,8 @@ def test_depth_images_take_their_json_or_the_metadata_box(server, page, tmp_path
     with client_of(server) as c:
         scans = c.get(f"/v1/scenes/{sid}/scans").json()
     assert sorted(s["name"] for s in scans) == ["depth_a.png", "depth_b.png"]
+    assert page.errors == []
+    page.close()
 
 
 def test_page_without_a_token_asks_for_one(server, browser):
