@@ -171,6 +171,29 @@ def project_point(kind, params, table, x, y, z):
 
 
 @njit(cache=True, inline="always")
+def spherical_column(params, x, y):
+    """A spherical sensor's column ``u`` and distance from the axis ``rho`` of the point
+    ``(x, y, z)`` whatever its ``z``, as :func:`project_point` computes them."""
+    return _column_from_azimuth(params, math.atan2(y, x)), math.sqrt(x * x + y * y)
+
+
+@njit(cache=True, inline="always")
+def spherical_in_column(params, table, u, rho, z):
+    """:func:`project_point` for a spherical sensor, the point's column ``u`` and ``rho``
+    known (:func:`spherical_column`): the same ``(u, v, d)``, bit for bit, for one ``atan2``
+    and one square root instead of two."""
+    d = math.sqrt(rho * rho + z * z)
+    if d == 0.0:
+        return math.nan, math.nan, math.nan
+    el = math.atan2(z, rho)
+    if params[P_HAS_TABLE] != 0.0:
+        v = _row_from_table(table, int(params[P_H]), el)
+    else:
+        v = (params[P_EL_MAX] - el) / params[P_DEL]
+    return u, v, d
+
+
+@njit(cache=True, inline="always")
 def distance(kind, params, x, y, z):
     """The range ``d`` of a sensor-frame point in the sensor's convention (pixel or not)."""
     if kind == PINHOLE:

@@ -49,6 +49,13 @@ FREE = 2
 #: Slack, in pixels and metres, added to the conservative tests against rounding.
 _PIXEL_SLACK = 1e-3
 _DIST_SLACK = 1e-9
+#: The most quads a part's test (:func:`_classify_part`) folds one by one; a larger pixel
+#: rectangle reads the pyramid's blocks (a superset of its quads).
+_EXACT_QUADS = 1024
+#: No per-quad bounds: :func:`_rect_stats` reads the pyramid's blocks only.
+_NO_BOUNDS = np.zeros(0, np.float32)
+#: A part nearer than this (metres) to a spherical sensor's axis is tested on every column.
+_AXIS_CLEARANCE = 1e-6
 
 
 @njit(cache=True)
@@ -95,8 +102,23 @@ def _blocks(reach, free, levels, qu0, qu1, qv0, qv1, acc):
 
 
 @njit(cache=True)
-def _rect_stats(reach, free, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
-    """Block statistics under a pixel rectangle, into ``acc`` (see :func:`_blocks`).
+def _quads(bounds, reach, free, levels, qu0, qu1, qv0, qv1, nqu, acc):
+    """Fold the statistics of quads [qu0, qu1] x [qv0, qv1] into ``acc``: quad by quad from
+    ``bounds`` (the flat float32 pairs of :func:`engine._sampling.quad_bounds`) when it is
+    given and the rectangle has at most ``_EXACT_QUADS`` quads, else by :func:`_blocks`."""
+    if bounds.shape[0] == 0 or (qu1 - qu0 + 1) * (qv1 - qv0 + 1) > _EXACT_QUADS:
+        _blocks(reach, free, levels, qu0, qu1, qv0, qv1, acc)
+        return
+    for qv in range(qv0, qv1 + 1):
+        row = 2 * qv * nqu
+        for qu in range(qu0, qu1 + 1):
+            _fold(acc, bounds[row + 2 * qu + 1], bounds[row + 2 * qu])
+
+
+@njit(cache=True)
+def _rect_stats(bounds, reach, free, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
+    """Statistics of the quads under a pixel rectangle, into ``acc`` (see :func:`_quads`;
+    an empty ``bounds`` reads the blocks of the pyramid only).
 
     ``ring > 0`` means columns are azimuth-periodic with that many columns per full turn;
     ``u_lo`` is then in ``[0, ring)`` and ``u_hi`` may exceed ``ring`` (the interval wraps).
@@ -115,12 +137,12 @@ def _rect_stats(reach, free, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc
     any_quad = False
     qu0, qu1 = _clip_quads(lo, hi, nqu)
     if qu1 >= qu0:
-        _blocks(reach, free, levels, qu0, qu1, qv0, qv1, acc)
+        _quads(bounds, reach, free, levels, qu0, qu1, qv0, qv1, nqu, acc)
         any_quad = True
     if ring > 0.0 and hi >= ring:
         qu0, qu1 = _clip_quads(0.0, hi - ring, nqu)
         if qu1 >= qu0:
-            _blocks(reach, free, levels, qu0, qu1, qv0, qv1, acc)
+            _quads(bounds, reach, free, levels, qu0, qu1, qv0, qv1, nqu, acc)
             any_quad = True
     return any_quad
 
@@ -268,7 +290,9 @@ def _classify_tile(
     if full_v:
         v_lo = 0.0
         v_hi = float(nqv)
-    if not _rect_stats(reach, free, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
+    if not _rect_stats(
+        _NO_BOUNDS, reach, free, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc
+    ):
         return OUT
     if acc[0] < d_min - _DIST_SLACK:
         return OUT
@@ -278,6 +302,93 @@ def _classify_tile(
     )
     inside_v = not full_v and v_lo - _PIXEL_SLACK >= 0.0 and v_hi + _PIXEL_SLACK <= H - 1.0
     if linear and inside_u and inside_v and d_max < acc[1] - _DIST_SLACK:
+        return FREE
+    return PARTIAL
+
+
+@njit(cache=True)
+def _classify_part(
+    key, S, h, M, c, o_W, params, table, bounds, reach, free, levels, reach_max, nqu, nqv,
+    linear, lo, hi, acc,
+):  # fmt: skip
+    # How a spherical sensor sees the box of voxel centres of part ``key`` (S^3 voxels): the
+    # outcomes of _classify_tile from a tighter footprint. The pixel rectangle bounds the
+    # angles of the box itself, not of its circumscribed sphere: the azimuths of its corners
+    # (a convex polygon clear of the axis spans less than half a turn, its extremes at
+    # corners) and the elevations of its extreme heights at its nearest and farthest
+    # distances from the axis; a small rectangle is folded quad by quad (_rect_stats).
+    # A part whose nearest point lies beyond every quad's reach under it is OUT (occluded).
+    W = params[_k.P_W]
+    H = params[_k.P_H]
+    for a in range(3):
+        lo[a] = (key[a] * S + 0.5) * h
+        hi[a] = ((key[a] + 1) * S - 0.5) * h
+    d_min = _box_distance(lo, hi, o_W)
+    if d_min - _DIST_SLACK > reach_max:
+        return OUT
+    d_max = 0.0
+    x_lo = y_lo = z_lo = np.inf
+    x_hi = y_hi = z_hi = -np.inf
+    rho_hi = 0.0
+    az0 = 0.0
+    da_lo = 0.0
+    da_hi = 0.0
+    for corner in range(8):
+        x = hi[0] if corner & 1 else lo[0]
+        y = hi[1] if corner & 2 else lo[1]
+        z = hi[2] if corner & 4 else lo[2]
+        px = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + c[0]
+        py = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + c[1]
+        pz = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + c[2]
+        d_max = max(d_max, math.sqrt(px * px + py * py + pz * pz))
+        rho_hi = max(rho_hi, math.sqrt(px * px + py * py))
+        x_lo, x_hi = min(x_lo, px), max(x_hi, px)
+        y_lo, y_hi = min(y_lo, py), max(y_hi, py)
+        z_lo, z_hi = min(z_lo, pz), max(z_hi, pz)
+        az = math.atan2(py, px)
+        if corner == 0:
+            az0 = az
+        da = az - az0  # in (-pi, pi) once wrapped: the corners span less than half a turn
+        if da > math.pi:
+            da -= 2.0 * math.pi
+        elif da < -math.pi:
+            da += 2.0 * math.pi
+        da_lo = min(da_lo, da)
+        da_hi = max(da_hi, da)
+    # nearest distance from the axis: of the corners' box in x and y (it holds the polygon)
+    gx = x_lo if x_lo > 0.0 else (-x_hi if x_hi < 0.0 else 0.0)
+    gy = y_lo if y_lo > 0.0 else (-y_hi if y_hi < 0.0 else 0.0)
+    rho_lo = math.sqrt(gx * gx + gy * gy)
+    # elevation atan2(z, rho) grows with z, and with rho for z < 0 (falls for z > 0)
+    el_hi = math.atan2(z_hi, rho_lo if z_hi >= 0.0 else rho_hi)
+    el_lo = math.atan2(z_lo, rho_hi if z_lo >= 0.0 else rho_lo)
+    if params[_k.P_HAS_TABLE] != 0.0:
+        v_lo = _k._row_from_table(table, int(H), el_hi)
+        v_hi = _k._row_from_table(table, int(H), el_lo)
+    else:
+        v_lo = (params[_k.P_EL_MAX] - el_hi) / params[_k.P_DEL]
+        v_hi = (params[_k.P_EL_MAX] - el_lo) / params[_k.P_DEL]
+    full_u = rho_lo <= _AXIS_CLEARANCE
+    if full_u:
+        u_lo = 0.0
+        u_hi = float(nqu)
+        ring = 0.0
+    else:
+        daz = params[_k.P_DAZ]
+        ring = 2.0 * math.pi / daz
+        a0 = (az0 + da_lo - params[_k.P_AZ_MIN]) % (2.0 * math.pi)
+        u_lo = a0 / daz
+        u_hi = (a0 + (da_hi - da_lo)) / daz
+    if not _rect_stats(bounds, reach, free, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
+        return OUT
+    if acc[0] < d_min - _DIST_SLACK:
+        return OUT
+    inside_u = _k.wraps(_k.SPHERICAL, params) or (
+        not full_u and u_lo - _PIXEL_SLACK >= 0.0 and u_hi + _PIXEL_SLACK <= W - 1.0
+    )
+    inside_v = v_lo - _PIXEL_SLACK >= 0.0 and v_hi + _PIXEL_SLACK <= H - 1.0
+    clear = d_min > _DIST_SLACK  # no voxel centre at the sensor (it has no pixel)
+    if linear and clear and inside_u and inside_v and d_max < acc[1] - _DIST_SLACK:
         return FREE
     return PARTIAL
 

@@ -23,11 +23,12 @@ import numpy as np
 from numba import njit, prange
 
 from ._memory import Scratch, zeros
+from ._parts import _add_block, _fuse_block, _push, _see_part
 from ._sampling import bilinear, prefetch, prefetch_quad, quad_columns, quad_index, quad_origin
 from ._sensor_kernels import CYLINDRICAL, P_H, SPHERICAL, project_point
 from ._threads import warn_if_slow_threading
 from .certainty import SHAPE_LINEAR, contribution, pack
-from .classify import FREE, OUT, _classify_tile, classify_tiles, reach_radius
+from .classify import FREE, OUT, classify_tiles, reach_radius
 from .errors import InvalidInputError, ScanNotFoundError
 from .grid import GridSpec
 from .meshing import Mesh, extract_mesh
@@ -49,8 +50,9 @@ _SPLIT_KINDS = (SPHERICAL, CYLINDRICAL)
 
 
 @functools.cache
-def _integrate_kernel(kind: int, shape: int):
-    """The fusion kernel compiled for one sensor kind and certainty shape.
+def _integrate_kernel(kind: int, shape: int, parts: bool = True):
+    """The fusion kernel compiled for one sensor kind and certainty shape (``parts=False``:
+    every partial tile voxel by voxel, the reference the tests compare the parts with).
 
     ``kind`` and ``shape`` are closure constants, so the compiler drops every branch of
     the other models from the innermost loop (about 4x faster than one kernel that tests
@@ -78,7 +80,8 @@ def _integrate_kernel(kind: int, shape: int):
     none of :func:`engine._sampling.sample_range`'s tests: it gives the same values.
     """
     linear = shape == SHAPE_LINEAR
-    split = kind in _SPLIT_KINDS
+    split = parts and kind in _SPLIT_KINDS
+    sub_parts = kind == SPHERICAL  # its part test is tight enough to pay for a second level
 
     @njit(cache=True, parallel=True, error_model="numpy")
     def integrate(
@@ -116,9 +119,10 @@ def _integrate_kernel(kind: int, shape: int):
             j0 = keys[row, 1] * T
             k0 = keys[row, 2] * T
             if split and T % 2 == 0:
-                # eight parts of S^3 voxels, each tested as a tile first (classify): a part
-                # out of view is skipped, a part free throughout takes logit(rho) at once,
-                # only the others are projected voxel by voxel
+                # eight parts of S^3 voxels, each tested as a tile first: a part out of view
+                # (or behind the surface beyond the reach) is skipped, a part free throughout
+                # takes logit(rho) at once; a spherical sensor's other parts are tested again
+                # in eight sub-parts; the blocks left are projected voxel by voxel
                 S = T // 2
                 SS = S * S
                 slab_y = np.empty(SS)
@@ -128,9 +132,12 @@ def _integrate_kernel(kind: int, shape: int):
                 slab_d = np.empty(SS)
                 slab_q = np.empty(SS, np.int64)
                 part_key = np.empty(3, np.int64)
+                sub_key = np.empty(3, np.int64)
                 lo = np.empty(3)
                 hi = np.empty(3)
                 acc = np.empty(3)
+                blocks = np.empty((64, 5), np.int64)  # first voxel (i, j, k), side, tile index
+                nblocks = 0
                 for part in range(8):
                     sa = (part >> 2) & 1
                     sb = (part >> 1) & 1
@@ -138,64 +145,52 @@ def _integrate_kernel(kind: int, shape: int):
                     part_key[0] = keys[row, 0] * 2 + sa
                     part_key[1] = keys[row, 1] * 2 + sb
                     part_key[2] = keys[row, 2] * 2 + sc
-                    seen = _classify_tile(
-                        kind, part_key, S, 0.0, h, M, c, o_W, params, table, p_reach, p_free,
-                        p_levels, reach_max, nqu, nqv, linear, lo, hi, acc,
+                    seen = _see_part(
+                        kind, part_key, S, h, M, c, o_W, params, table, flat_bounds, p_reach,
+                        p_free, p_levels, reach_max, nqu, nqv, linear, lo, hi, acc,
                     )  # fmt: skip
                     if seen == OUT:
                         continue
                     corner = sa * S * TT + sb * S * T + sc * S
                     if seen == FREE:
-                        for a in range(S):
-                            for b in range(S):
-                                line = corner + a * TT + b * T
-                                for cc in range(S):
-                                    tile[line + cc] += free_value
+                        _add_block(tile, corner, S, T, free_value)
                         count += S * SS
                         continue
-                    ja = j0 + sb * S
-                    ka = k0 + sc * S
-                    for b in range(S):
-                        y = ((ja + b) + 0.5) * h
-                        for cc in range(S):
-                            slab_y[b * S + cc] = y
-                            slab_z[b * S + cc] = ((ka + cc) + 0.5) * h
-                    for a in range(S):
-                        x = ((i0 + sa * S + a) + 0.5) * h
-                        for m in range(SS):  # pass 1
-                            y = slab_y[m]
-                            z = slab_z[m]
-                            bx = M[0, 0] * x + M[0, 1] * y + c[0]
-                            by = M[1, 0] * x + M[1, 1] * y + c[1]
-                            bz = M[2, 0] * x + M[2, 1] * y + c[2]
-                            u, v, d = project_point(
-                                kind, params, table, bx + M[0, 2] * z, by + M[1, 2] * z,
-                                bz + M[2, 2] * z,
-                            )  # fmt: skip
-                            slab_u[m] = u
-                            slab_v[m] = v
-                            slab_d[m] = d
-                            slab_q[m] = quad_index(kind, params, u, v)
-                        base = corner + a * TT
-                        for b in range(S):  # pass 2
-                            for cc in range(S):
-                                m = b * S + cc
-                                q = slab_q[m]
-                                if q < 0:
-                                    continue
-                                d = slab_d[m]
-                                if linear and d < flat_bounds[2 * q]:
-                                    tile[base + b * T + cc] += free_value
-                                    count += 1
-                                elif d <= flat_bounds[2 * q + 1]:
-                                    u = slab_u[m]
-                                    v = slab_v[m]
-                                    at[queued] = base + b * T + cc
-                                    band_u[queued] = u
-                                    band_v[queued] = v
-                                    band_d[queued] = d
-                                    queued += 1
-                                    prefetch_quad(kind, params, rng, u, v)
+                    if not (sub_parts and S % 2 == 0):
+                        nblocks = _push(
+                            blocks, nblocks, i0 + sa * S, j0 + sb * S, k0 + sc * S, S, corner
+                        )
+                        continue
+                    R = S // 2
+                    for sub in range(8):
+                        ta = (sub >> 2) & 1
+                        tb = (sub >> 1) & 1
+                        tc = sub & 1
+                        sub_key[0] = part_key[0] * 2 + ta
+                        sub_key[1] = part_key[1] * 2 + tb
+                        sub_key[2] = part_key[2] * 2 + tc
+                        seen = _see_part(
+                            kind, sub_key, R, h, M, c, o_W, params, table, flat_bounds,
+                            p_reach, p_free, p_levels, reach_max, nqu, nqv, linear, lo, hi, acc,
+                        )  # fmt: skip
+                        if seen == OUT:
+                            continue
+                        inner = corner + ta * R * TT + tb * R * T + tc * R
+                        if seen == FREE:
+                            _add_block(tile, inner, R, T, free_value)
+                            count += R * R * R
+                            continue
+                        nblocks = _push(
+                            blocks, nblocks, i0 + sa * S + ta * R, j0 + sb * S + tb * R,
+                            k0 + sc * S + tc * R, R, inner,
+                        )  # fmt: skip
+                for n_block in range(nblocks):
+                    count, queued = _fuse_block(
+                        kind, linear, tile, blocks[n_block, 4], blocks[n_block, 0],
+                        blocks[n_block, 1], blocks[n_block, 2], blocks[n_block, 3], T, h, M, c,
+                        params, table, flat_bounds, rng, free_value, at, band_u, band_v, band_d,
+                        slab_y, slab_z, slab_u, slab_v, slab_d, slab_q, count, queued,
+                    )  # fmt: skip
             else:
                 slab_y = np.empty(TT)
                 slab_z = np.empty(TT)
@@ -310,15 +305,18 @@ def integrate_seen(
     sign: int,
     scratch: Scratch | None = None,
     bounds: np.ndarray | None = None,
+    parts: bool = True,
 ) -> np.ndarray:
     """:func:`integrate_tiles` on rows already classified by :func:`classify_tiles` as in
     view (``free[n]``: the scan sees row ``rows[n]`` as free space throughout). ``bounds``:
     the scan's :meth:`~engine.scans.PreparedScan.quad_bounds` if the caller has them, else
-    they are computed (in ``scratch``'s array when given; see :mod:`engine._memory`)."""
+    they are computed (in ``scratch``'s array when given; see :mod:`engine._memory`).
+    ``parts=False`` fuses a LiDAR's partial tiles voxel by voxel, without the tests of their
+    parts: the same bits, slower (the tests' reference)."""
     informed = np.zeros(len(keys), np.int64)
     if len(rows):
         warn_if_slow_threading()
-        kernel = _integrate_kernel(scan.kind, scan.shape)
+        kernel = _integrate_kernel(scan.kind, scan.shape, parts)
         if bounds is None:
             bounds = scan.quad_bounds(scratch)  # and the pyramid, when it is not there yet
         p_free, p_reach, p_levels = scan.pyramid()

@@ -96,6 +96,61 @@ def test_tiles_beyond_a_scans_sphere_are_out_of_its_view() -> None:
             assert (status == OUT).all()
 
 
+def _tilted(pose: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """``pose`` turned by a small random rotation (roll, pitch and yaw) about its origin."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = rng.uniform(0.02, 0.3)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    R = np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+    out = pose.copy()
+    out[:3, :3] = R @ pose[:3, :3]
+    return out
+
+
+@pytest.mark.parametrize(
+    ("case", "h"), [("level", 0.2), ("tilted", 0.2), ("no table", 0.2), ("level", 0.1)]
+)
+def test_the_parts_of_a_lidars_tiles_give_the_bits_of_the_voxel_loop(case: str, h: float) -> None:
+    """A spherical scan's kernel settles the parts and sub-parts of a partial tile that it
+    sees out of view, behind the surface beyond its reach or free throughout, before any
+    voxel: the same bits and the same informed counts as fusing every voxel of the tile."""
+    import dataclasses
+
+    from rangefuse.engine.allocation import tiles_touched
+    from rangefuse.engine.classify import FREE
+    from rangefuse.engine.fusion import integrate_seen
+    from rangefuse.engine.grid import unique_keys
+    from rangefuse.engine.scans import prepare_scan
+
+    rng = np.random.default_rng(len(case))
+    data = make_dataset("street", length_m=120)
+    grid = GridSpec(h, 16, "mapping")
+    params = FusionParams(NoiseModel(eps=2 * h))
+    scans = [scan for _, scan in data.scans[10:50:13]]
+    if case == "tilted":
+        scans = [dataclasses.replace(s, T_W_S=_tilted(s.T_W_S, rng)) for s in scans]
+    if case == "no table":  # rows evenly spaced over the same span, the ranges unchanged
+        e = scans[0].sensor.elevations
+        sensor = dataclasses.replace(scans[0].sensor, elevations=None, el_max=e[0], el_min=e[-1])
+        scans = [dataclasses.replace(s, sensor=sensor) for s in scans]
+    prepared = [prepare_scan(s, params) for s in scans]
+    keys = unique_keys(np.concatenate([tiles_touched(p, grid) for p in prepared]))
+    T = grid.tile_size
+    for scan in prepared:
+        status = classify_tiles(scan, grid, keys)
+        rows = np.flatnonzero(status != OUT)
+        free = status[rows] == FREE
+        fused = []
+        for parts in (True, False):
+            data_ = np.zeros((len(keys), T, T, T), np.int64)
+            informed = integrate_seen(scan, grid, keys, data_, rows, free, 1, parts=parts)
+            fused.append((data_, informed))
+        assert np.array_equal(fused[0][0], fused[1][0])
+        assert np.array_equal(fused[0][1], fused[1][1])
+        assert (fused[0][1] > 0).sum() > 100
+
+
 @pytest.mark.slow
 def test_lidar_benchmark_smoke(tmp_path) -> None:
     import importlib.util

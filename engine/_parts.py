@@ -1,0 +1,122 @@
+"""The parts of a LiDAR's partial tile, inside the fusion kernel (``docs/lidar.md``).
+
+:func:`engine.fusion._integrate_kernel` tests the eight 8^3 parts of a spherical or cylindrical
+sensor's partial tile (:func:`_see_part`), and a spherical sensor's partial parts again in eight
+4^3 sub-parts, before any voxel: a part out of view or behind the surface beyond the reach is
+skipped, a part free throughout takes ``logit(rho)`` (:func:`_add_block`), and what is left goes
+through passes 1 and 2 of the kernel block by block (:func:`_fuse_block`). Each voxel receives
+what the voxel loop gives it: the part tests are conservative (:mod:`engine.classify`).
+"""
+
+from __future__ import annotations
+
+from numba import njit
+
+from ._sampling import prefetch_quad, quad_index
+from ._sensor_kernels import SPHERICAL, project_point, spherical_column, spherical_in_column
+from .classify import _classify_part, _classify_tile
+
+
+@njit(cache=True, inline="always")
+def _add_block(tile, corner, S, T, value):
+    # ``value`` to the S^3 voxels of the flat tile (side T) whose first voxel is tile[corner]
+    for a in range(S):
+        for b in range(S):
+            line = corner + a * T * T + b * T
+            for cc in range(S):
+                tile[line + cc] += value
+
+
+@njit(cache=True)
+def _see_part(
+    kind, key, S, h, M, c, o_W, params, table, flat_bounds, p_reach, p_free, p_levels,
+    reach_max, nqu, nqv, linear, lo, hi, acc,
+):  # fmt: skip
+    # how the scan sees the part ``key`` of S^3 voxels of a tile (engine.classify)
+    if kind == SPHERICAL:
+        return _classify_part(
+            key, S, h, M, c, o_W, params, table, flat_bounds, p_reach, p_free, p_levels,
+            reach_max, nqu, nqv, linear, lo, hi, acc,
+        )  # fmt: skip
+    return _classify_tile(
+        kind, key, S, 0.0, h, M, c, o_W, params, table, p_reach, p_free, p_levels, reach_max,
+        nqu, nqv, linear, lo, hi, acc,
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _fuse_block(
+    kind, linear, tile, corner, i, j, k, S, T, h, M, c, params, table, flat_bounds, rng,
+    free_value, at, band_u, band_v, band_d, slab_y, slab_z, slab_u, slab_v, slab_d, slab_q,
+    count, queued,
+):  # fmt: skip
+    # passes 1 and 2 (see _integrate_kernel) over the block of S^3 voxels whose first voxel is
+    # ``tile[corner]``, voxel (i, j, k) of the grid; returns the new count and queue length
+    TT = T * T
+    for b in range(S):
+        y = ((j + b) + 0.5) * h
+        for cc in range(S):
+            slab_y[b * S + cc] = y
+            slab_z[b * S + cc] = ((k + cc) + 0.5) * h
+    # a level sensor (no roll or pitch: the world's z does not move a point's x and y in
+    # the sensor frame) sees a column of voxels at one azimuth and one distance from its
+    # axis: computed once per column (x + 0.0 * z is x unless x is zero: those columns
+    # go voxel by voxel, as the sign of a zero can change the azimuth)
+    level = kind == SPHERICAL and M[0, 2] == 0.0 and M[1, 2] == 0.0
+    for a in range(S):
+        x = ((i + a) + 0.5) * h
+        for b in range(S):  # pass 1
+            first = b * S
+            bx = M[0, 0] * x + M[0, 1] * slab_y[first] + c[0]
+            by = M[1, 0] * x + M[1, 1] * slab_y[first] + c[1]
+            bz = M[2, 0] * x + M[2, 1] * slab_y[first] + c[2]
+            if level and bx != 0.0 and by != 0.0:
+                cu, rho = spherical_column(params, bx, by)
+                for m in range(first, first + S):
+                    u, v, d = spherical_in_column(params, table, cu, rho, bz + M[2, 2] * slab_z[m])
+                    slab_u[m] = u
+                    slab_v[m] = v
+                    slab_d[m] = d
+                    slab_q[m] = quad_index(kind, params, u, v)
+                continue
+            for m in range(first, first + S):
+                z = slab_z[m]
+                u, v, d = project_point(
+                    kind, params, table, bx + M[0, 2] * z, by + M[1, 2] * z, bz + M[2, 2] * z
+                )
+                slab_u[m] = u
+                slab_v[m] = v
+                slab_d[m] = d
+                slab_q[m] = quad_index(kind, params, u, v)
+        base = corner + a * TT
+        for b in range(S):  # pass 2
+            for cc in range(S):
+                m = b * S + cc
+                q = slab_q[m]
+                if q < 0:
+                    continue
+                d = slab_d[m]
+                if linear and d < flat_bounds[2 * q]:
+                    tile[base + b * T + cc] += free_value
+                    count += 1
+                elif d <= flat_bounds[2 * q + 1]:
+                    u = slab_u[m]
+                    v = slab_v[m]
+                    at[queued] = base + b * T + cc
+                    band_u[queued] = u
+                    band_v[queued] = v
+                    band_d[queued] = d
+                    queued += 1
+                    prefetch_quad(kind, params, rng, u, v)
+    return count, queued
+
+
+@njit(cache=True, inline="always")
+def _push(blocks, n, i, j, k, S, corner):
+    # a block of S^3 voxels left for _fuse_block: first voxel (i, j, k), at tile[corner]
+    blocks[n, 0] = i
+    blocks[n, 1] = j
+    blocks[n, 2] = k
+    blocks[n, 3] = S
+    blocks[n, 4] = corner
+    return n + 1
