@@ -81,12 +81,7 @@ def main() -> None:
             threading.Thread(target=log_tail.extend, args=(proc.stdout,), daemon=True).start()
             url = f"http://127.0.0.1:{port}"
             headers = {"Authorization": f"Bearer {token}"}
-            for _ in range(100):
-                try:
-                    httpx.get(f"{url}/healthz", timeout=1)
-                    break
-                except httpx.HTTPError:
-                    time.sleep(0.2)
+            _wait_until_settled(url, proc.pid)
             body = {"name": "load", "voxel_size": args.voxel, "mode": "closed",
                     "bounds": list(data.bounds)}  # fmt: skip
             sid = httpx.post(f"{url}/v1/scenes", json=body, headers=headers).json()["id"]
@@ -120,6 +115,34 @@ def main() -> None:
     cpu = {role: cpu_after[role] - cpu_before.get(role, 0.0) for role in cpu_after}
     print(f"{clients} clients x {per} scans of 640x480 (1.2 MB .npy each), voxel {args.voxel} m")
     _table(latencies, statuses, upload_s, fused_s, exact, cpu)
+
+
+def _wait_until_settled(url: str, server_pid: int, timeout: float = 120.0) -> None:
+    """Until every worker has joined (``/healthz`` 200 with the workers the service starts)
+    and the service's processes are about idle (less than 15% of a core over half a second;
+    idle, the scheduler, nannies and workers take about 9%): the load starts on a service
+    that has finished starting, not on workers still importing."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            r = httpx.get(f"{url}/healthz", timeout=1)
+            if r.status_code == 200 and r.json()["workers"] >= int(
+                os.environ.get("RANGEFUSE_WORKERS", "2")
+            ):
+                break
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.2)
+    else:
+        raise SystemExit("the service's workers did not start")
+    before = sum(_cpu_by_role(server_pid).values())
+    while time.monotonic() < deadline:
+        time.sleep(0.5)
+        after = sum(_cpu_by_role(server_pid).values())
+        if after - before < 0.075:
+            return
+        before = after
+    raise SystemExit("the service did not settle")
 
 
 def _upload_all(

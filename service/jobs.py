@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
+from rangefuse.engine.grid import unique_keys
 from rangefuse.storage import Store, open_scene
 from rangefuse.storage._files import atomic_write
 from rangefuse.storage.scene import Scene
@@ -140,6 +141,13 @@ def _reconstruct(
             **counts}  # fmt: skip
 
 
+def _load_planning_kernels() -> None:
+    """Load the kernels a job's planning runs in this process (the tile keys' packing).
+    numba sets up its compiler the first time a process loads a kernel, about half a second
+    that holds the GIL: done at start, not under the first job while requests are served."""
+    unique_keys(np.zeros((1, 3), np.int64))
+
+
 class _OnJobRunner:
     """A job's runner whose units report the compilations they cause as the job's
     (:class:`service.worker.OnJob`)."""
@@ -238,6 +246,7 @@ class JobRunner:
             resumed = queue.requeue_running()
         if resumed:
             log.info("resuming %d interrupted jobs", resumed)
+        _load_planning_kernels()
         s = self.settings
         self.cluster = Cluster(s.workers, s.worker_memory, s.scheduler)
         self.cluster.client.subscribe_topic(COMPILE_TOPIC, self._compilations.on_event)
