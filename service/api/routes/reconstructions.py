@@ -14,6 +14,7 @@ from rangefuse.engine.meshing import Mesh
 from rangefuse.storage.meshes import mesh_bytes
 
 from ...jobs import new_id
+from ...queue import JobQueue
 from ..deps import CurrentTenant, JobsDep, QueueDep, TenantScene
 from ..models import Accepted, ReconstructionIn, problems
 
@@ -56,6 +57,19 @@ def reconstruct(
     return Accepted.model_validate({"job": {"id": job.id}})
 
 
+def latest_mesh(queue: JobQueue, scene_id: str, variant: str) -> tuple[str, str, int]:
+    """The scene's latest mesh: its file, the ``ETag`` of its ``variant`` (a format, or the
+    preview) and its faces; 409 before the first reconstruction."""
+    found = queue.mesh(scene_id)
+    if found is None:
+        raise HTTPException(
+            409, "the scene has no reconstruction yet: reconstruct it first "
+            "(POST /v1/scenes/{id}/reconstructions)",
+        )  # fmt: skip
+    path, etag, faces = found
+    return path, f'"{etag}-{variant}"', faces
+
+
 @router.get(
     "/mesh",
     response_class=StreamingResponse,
@@ -73,11 +87,7 @@ def get_mesh(
 ) -> Response:
     """The latest reconstruction, streamed, with an ``ETag`` (409 before the first), as a
     file named after the scene (``Content-Disposition``)."""
-    found = queue.mesh(scene.id)
-    if found is None:
-        raise HTTPException(409, "no reconstruction yet: POST /v1/scenes/{id}/reconstructions")
-    path, etag, _ = found
-    tag = f'"{etag}-{format}"'
+    path, tag, _ = latest_mesh(queue, scene.id, format)
     if if_none_match == tag:
         return Response(status_code=304, headers={"ETag": tag})
     with np.load(path) as data:

@@ -13,6 +13,7 @@ from rangefuse.storage.archive import ArchiveError, ScanArchive
 from ...previews import PREVIEW_FACES, preview_of, preview_path
 from ..deps import QueueDep, StoreDep, TenantScene
 from ..models import problems
+from .reconstructions import latest_mesh
 
 __all__ = ["router"]
 
@@ -51,11 +52,7 @@ def get_preview(
     """The latest reconstruction simplified to at most 300,000 faces (made by the
     reconstruction job), measured faces first, then the inferred ones: for viewing; the
     full mesh is at ``.../mesh``. 409 before the first reconstruction."""
-    found = queue.mesh(scene.id)
-    if found is None:
-        raise HTTPException(409, "the scene has no reconstruction yet: reconstruct it first")
-    mesh_path, etag, faces = found
-    tag = f'"{etag}-preview"'
+    mesh_path, tag, faces = latest_mesh(queue, scene.id, "preview")
     if if_none_match == tag:
         return Response(status_code=304, headers={"ETag": tag})
     cached = preview_path(mesh_path)
