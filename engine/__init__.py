@@ -4,6 +4,8 @@ Certainty fusion of registered range images after Elsner, Whitaker & Abidi (1999
 see ``METHOD.md``.
 """
 
+# first, before any kernel is defined: the kernels' cache keyed by every engine file
+from . import _numba_cache  # noqa: F401
 from .allocation import tiles_touched
 from .certainty import NoiseModel, decode_count, decode_logodds
 from .classify import tiles_in_view

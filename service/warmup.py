@@ -90,18 +90,21 @@ def cache_state() -> CacheState:
     """Read the index files of the engine's kernels in numba's cache (``NUMBA_CACHE_DIR``,
     which :mod:`rangefuse.service` sets): one per kernel and line where it starts
     (``fusion._integrate_kernel.locals.integrate-83.py311.nbi``), holding numba's version
-    and a hash of the kernel's source file, which numba compares before loading a build. A
+    and the stamp of the engine's sources (``engine._numba_cache``), which numba compares
+    before loading a build. A
     kernel counts as fresh when one of its index files is; the index of a function that no
     longer exists is left out."""
     import numba
     import rangefuse.engine
-    from numba.core.caching import _CacheLocator, _SourceFileBackedLocatorMixin
+    from numba.core.caching import _CacheLocator
+    from rangefuse.engine._numba_cache import engine_source_stamp
 
     engine_dir = Path(rangefuse.engine.__file__).resolve().parent
     folder = numba_cache_dir() / _CacheLocator.get_suitable_cache_subpath(
         str(engine_dir / "__init__.py")
     )
-    sources: dict[str, tuple[str, Any]] = {}  # module -> (its text, numba's stamp of it)
+    sources: dict[str, str] = {}  # module -> its text
+    stamp_now = engine_source_stamp()
     kernels: dict[str, bool] = {}  # module.qualname -> whether a fresh build is cached
     for index in sorted(folder.glob("*.nbi")):
         kernel = index.name.rsplit("-", 1)[0]
@@ -110,11 +113,8 @@ def cache_state() -> CacheState:
         if not source.is_file():  # a module that is gone
             continue
         if module not in sources:
-            locator = _SourceFileBackedLocatorMixin()
-            locator._py_file = str(source)  # type: ignore[attr-defined]
-            sources[module] = (source.read_text(), locator.get_source_stamp())
-        text, stamp_now = sources[module]
-        if f"def {qualname.rsplit('.', 1)[-1]}(" not in text:  # a function that is gone
+            sources[module] = source.read_text()
+        if f"def {qualname.rsplit('.', 1)[-1]}(" not in sources[module]:  # a function gone
             continue
         try:
             with open(index, "rb") as fh:
