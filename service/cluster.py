@@ -254,6 +254,16 @@ class Cluster:
 #: is throughput work that catches up once uploads pause.
 WORKER_NICE = 10
 
+#: Dask settings of the local cluster's processes, unless the environment gives its own:
+#: no statistical profiler in the workers (it samples the running unit every 10 ms, for a
+#: dashboard the workers do not serve: a fifth to a quarter of their CPU under upload load) and the event
+#: loops' health tick every second instead of 50 times a second. Idle, the scheduler and two
+#: workers went from about 9.6% of a core to 3.9%.
+QUIET_DASK = {
+    "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False",
+    "DASK_DISTRIBUTED__ADMIN__TICK__INTERVAL": "1s",
+}
+
 
 class _LocalProcesses:
     """A ``dask scheduler`` and ``workers`` ``dask worker`` processes (each under its nanny,
@@ -296,7 +306,7 @@ class _LocalProcesses:
         try:
             file = Path(self._folder.name) / "scheduler.json"
             cores = os.cpu_count() or 1
-            env = {**os.environ, "NUMBA_NUM_THREADS": str(max(1, cores // workers))}
+            env = {**QUIET_DASK, **os.environ, "NUMBA_NUM_THREADS": str(max(1, cores // workers))}
             # the scheduler gives up on a unit after this many dead workers (this process's
             # dask config, e.g. DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES)
             failures = dask.config.get("distributed.scheduler.allowed-failures")
