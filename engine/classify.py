@@ -307,28 +307,6 @@ def _classify_tile(
 
 
 @njit(cache=True)
-def _azimuth_span(lo, hi, M, c, az0):
-    # the azimuths of the box's corners relative to az0, wrapped into (-pi, pi]: the corners
-    # of a box clear of the axis span less than half a turn
-    da_lo = 0.0
-    da_hi = 0.0
-    for corner in range(8):
-        x = hi[0] if corner & 1 else lo[0]
-        y = hi[1] if corner & 2 else lo[1]
-        z = hi[2] if corner & 4 else lo[2]
-        px = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + c[0]
-        py = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + c[1]
-        da = math.atan2(py, px) - az0
-        if da > math.pi:
-            da -= 2.0 * math.pi
-        elif da < -math.pi:
-            da += 2.0 * math.pi
-        da_lo = min(da_lo, da)
-        da_hi = max(da_hi, da)
-    return da_lo, da_hi
-
-
-@njit(cache=True)
 def _classify_part(
     key, S, h, M, c, o_W, params, table, bounds, reach, free, levels, reach_max, nqu, nqv,
     linear, lo, hi, acc,
@@ -348,16 +326,13 @@ def _classify_part(
     d_min = _box_distance(lo, hi, o_W)
     if d_min - _DIST_SLACK > reach_max:
         return OUT
-    d2_max = 0.0
-    rho2_hi = 0.0
+    d_max = 0.0
     x_lo = y_lo = z_lo = np.inf
     x_hi = y_hi = z_hi = -np.inf
-    x0 = y0 = 0.0
-    # azimuths relative to corner 0 by their tangents while every corner is within a quarter
-    # turn of it (atan is monotone: two atan instead of eight atan2)
-    t_lo = 0.0
-    t_hi = 0.0
-    ahead = True
+    rho_hi = 0.0
+    az0 = 0.0
+    da_lo = 0.0
+    da_hi = 0.0
     for corner in range(8):
         x = hi[0] if corner & 1 else lo[0]
         y = hi[1] if corner & 2 else lo[1]
@@ -365,24 +340,21 @@ def _classify_part(
         px = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + c[0]
         py = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + c[1]
         pz = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + c[2]
-        rho2 = px * px + py * py
-        d2_max = max(d2_max, rho2 + pz * pz)
-        rho2_hi = max(rho2_hi, rho2)
+        d_max = max(d_max, math.sqrt(px * px + py * py + pz * pz))
+        rho_hi = max(rho_hi, math.sqrt(px * px + py * py))
         x_lo, x_hi = min(x_lo, px), max(x_hi, px)
         y_lo, y_hi = min(y_lo, py), max(y_hi, py)
         z_lo, z_hi = min(z_lo, pz), max(z_hi, pz)
+        az = math.atan2(py, px)
         if corner == 0:
-            x0 = px
-            y0 = py
-        dot = x0 * px + y0 * py
-        if dot > 0.0:
-            t = (x0 * py - y0 * px) / dot
-            t_lo = min(t_lo, t)
-            t_hi = max(t_hi, t)
-        else:
-            ahead = False
-    d_max = math.sqrt(d2_max)
-    rho_hi = math.sqrt(rho2_hi)
+            az0 = az
+        da = az - az0  # in (-pi, pi) once wrapped: the corners span less than half a turn
+        if da > math.pi:
+            da -= 2.0 * math.pi
+        elif da < -math.pi:
+            da += 2.0 * math.pi
+        da_lo = min(da_lo, da)
+        da_hi = max(da_hi, da)
     # nearest distance from the axis: of the corners' box in x and y (it holds the polygon)
     gx = x_lo if x_lo > 0.0 else (-x_hi if x_hi < 0.0 else 0.0)
     gy = y_lo if y_lo > 0.0 else (-y_hi if y_hi < 0.0 else 0.0)
@@ -402,12 +374,6 @@ def _classify_part(
         u_hi = float(nqu)
         ring = 0.0
     else:
-        az0 = math.atan2(y0, x0)
-        if ahead:
-            da_lo = math.atan(t_lo)
-            da_hi = math.atan(t_hi)
-        else:
-            da_lo, da_hi = _azimuth_span(lo, hi, M, c, az0)
         daz = params[_k.P_DAZ]
         ring = 2.0 * math.pi / daz
         a0 = (az0 + da_lo - params[_k.P_AZ_MIN]) % (2.0 * math.pi)
