@@ -256,9 +256,9 @@ WORKER_NICE = 10
 
 #: Dask settings of the local cluster's processes, unless the environment gives its own:
 #: no statistical profiler in the workers (it samples the running unit every 10 ms, for a
-#: dashboard the workers do not serve: a fifth to a quarter of their CPU under upload load) and the event
-#: loops' health tick every second instead of 50 times a second. Idle, the scheduler and two
-#: workers went from about 9.6% of a core to 3.9%.
+#: dashboard the workers do not serve: a fifth to a quarter of their CPU under upload load)
+#: and the event loops' health tick every second instead of 50 times a second. Idle, the
+#: scheduler and two workers went from about 9.6% of a core to 3.9%.
 QUIET_DASK = {
     "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False",
     "DASK_DISTRIBUTED__ADMIN__TICK__INTERVAL": "1s",
