@@ -8,8 +8,9 @@ which call it, load their old builds, silently. A checkout updated with ``git pu
 README's ``make run`` installs the repository in place) hits exactly that.
 
 :func:`install` puts a locator in front of numba's own (``CacheImpl._locator_classes``) that
-takes the engine's kernels: the same cache folder numba would pick, and as the stamp a
-SHA-256 over every ``.py`` file of the engine. Any change to the engine makes every kernel
+takes the engine's kernels (``engine/`` and its subpackages: the synthetic renderer's kernels
+call the sensors'): the same cache folder numba would pick, and as the stamp a SHA-256 over
+every ``.py`` file under ``engine/``. Any change to the engine makes every kernel
 compile again on its next use; a change elsewhere (storage, the service) compiles nothing.
 Importing this module installs it; ``engine/__init__.py`` imports it before any kernel is
 defined (numba picks the locator when ``@njit(cache=True)`` decorates a function).
@@ -34,18 +35,20 @@ def engine_source_stamp() -> str:
 
 
 def source_stamp(folder: Path) -> str:
-    """SHA-256 over the names and texts of the ``.py`` files of ``folder``, in name order."""
+    """SHA-256 over the paths (relative to ``folder``) and texts of the ``.py`` files under
+    ``folder``, in path order."""
     digest = hashlib.sha256()
-    for path in sorted(folder.glob("*.py")):
+    for path in sorted(folder.rglob("*.py")):
         text = path.read_bytes()
-        digest.update(f"{path.name}\0{len(text)}\0".encode())
+        digest.update(f"{path.relative_to(folder).as_posix()}\0{len(text)}\0".encode())
         digest.update(text)
     return "rangefuse-engine:" + digest.hexdigest()
 
 
 class _EngineLocator:
-    """The locator numba would use for an engine file, with :func:`engine_source_stamp` as
-    the stamp; ``from_function`` declines every other file (numba's own locators take it)."""
+    """The locator numba would use for a file under ``engine/``, with
+    :func:`engine_source_stamp` as the stamp; ``from_function`` declines every other file
+    (numba's own locators take it)."""
 
     #: numba's locators, in its order (set by :func:`install`).
     standard: tuple[Any, ...] = ()
@@ -55,7 +58,7 @@ class _EngineLocator:
 
     @classmethod
     def from_function(cls, py_func: Any, py_file: str) -> _EngineLocator | None:
-        if Path(py_file).resolve().parent != ENGINE_DIR:
+        if ENGINE_DIR not in Path(py_file).resolve().parents:
             return None
         for locator_class in cls.standard:
             inner = locator_class.from_function(py_func, py_file)

@@ -19,8 +19,8 @@ def _engine_kernels() -> list[numba.core.registry.CPUDispatcher]:
     import pkgutil
 
     found = []
-    for info in pkgutil.iter_modules(rangefuse.engine.__path__):
-        module = importlib.import_module(f"rangefuse.engine.{info.name}")
+    for info in pkgutil.walk_packages(rangefuse.engine.__path__, "rangefuse.engine."):
+        module = importlib.import_module(info.name)
         for value in vars(module).values():
             cache = getattr(value, "_cache", None)
             if isinstance(value, numba.core.registry.CPUDispatcher) and hasattr(cache, "_impl"):
@@ -31,6 +31,7 @@ def _engine_kernels() -> list[numba.core.registry.CPUDispatcher]:
 def test_every_cached_engine_kernel_is_stamped_with_the_whole_engine() -> None:
     kernels = _engine_kernels()
     assert len(kernels) > 20  # the fusion, allocation, meshing ... kernels
+    assert any(".synth." in k.py_func.__module__ for k in kernels)  # the renderer's too
     for kernel in kernels:
         locator = kernel._cache._impl.locator
         assert type(locator).__name__ == "_EngineLocator", kernel
