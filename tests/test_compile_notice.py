@@ -73,8 +73,10 @@ def test_a_worker_compiling_kernels_shows_on_the_job_until_it_is_done(tmp_path):
     data_dir = tmp_path / "data"
     go = tmp_path / "go"
     with Store.open(data_dir, create=True) as store, JobQueue(store.catalog.path) as queue:
-        # the runner looks for queued jobs only when woken: the job below stays this test's
-        runner = JobRunner(data_dir, Settings(data_dir=data_dir, workers=1, poll_s=3600.0))
+        # a runner that claims no job (its loop starts at once and would race the test for
+        # the job below; model_copy skips the validation that keeps jobs >= 1)
+        settings = Settings(data_dir=data_dir, workers=1, poll_s=3600.0)
+        runner = JobRunner(data_dir, settings.model_copy(update={"jobs": 0}))
         runner.start()
         try:
             job = queue.create_job(new_id(), "t", "scene", "integrate", {})
