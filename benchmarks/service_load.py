@@ -44,6 +44,10 @@ def main() -> None:
     parser.add_argument("--clients", type=int, default=8)
     parser.add_argument("--scans", type=int, default=25, help="per client")
     parser.add_argument("--voxel", type=float, default=0.04)
+    parser.add_argument(
+        "--http-processes", type=int, default=os.cpu_count() or 1,
+        help="the service's HTTP processes (default: one per core)",
+    )  # fmt: skip
     args = parser.parse_args()
     clients, per = (2, 3) if args.quick else (args.clients, args.scans)
     sys.path.insert(0, str(ROOT))
@@ -63,7 +67,7 @@ def main() -> None:
         env = {**os.environ, "PYTHONUNBUFFERED": "1", "RANGEFUSE_POLL_S": "0.05"}
         proc = subprocess.Popen(
             [sys.executable, "-m", "rangefuse.service.cli", "serve", "--data-dir", f"{tmp}/data",
-             "--port", str(port)],
+             "--port", str(port), "--http-processes", str(args.http_processes)],
             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )  # fmt: skip
         try:
@@ -113,7 +117,8 @@ def main() -> None:
     if refusals or not exact:
         print("the server's last log lines:\n" + "".join(list(log_tail)[-40:]))
     cpu = {role: cpu_after[role] - cpu_before.get(role, 0.0) for role in cpu_after}
-    print(f"{clients} clients x {per} scans of 640x480 (1.2 MB .npy each), voxel {args.voxel} m")
+    print(f"{clients} clients x {per} scans of 640x480 (1.2 MB .npy each), voxel {args.voxel} m, "
+          f"{args.http_processes} HTTP processes")  # fmt: skip
     _table(latencies, statuses, upload_s, fused_s, exact, cpu)
 
 
@@ -210,14 +215,19 @@ def _table(
 
 def _cpu_by_role(server_pid: int) -> dict[str, float]:
     """CPU seconds (user + system) used so far by this process (the clients), the API
-    process, and its children (the Dask scheduler and workers, nannies included)."""
+    processes (the service's and the other HTTP processes it started), and its other children
+    (the Dask scheduler and workers, nannies included)."""
     out = {"clients": sum(psutil.Process().cpu_times()[:2])}
     api = psutil.Process(server_pid)
     out["api"] = sum(api.cpu_times()[:2])
     for child in api.children(recursive=True):
         try:
             cmd = " ".join(child.cmdline())
-            role = "scheduler" if "dask_scheduler" in cmd else "workers"
+            role = (
+                "scheduler" if "dask_scheduler" in cmd
+                else "api" if "http_processes" in cmd
+                else "workers"
+            )  # fmt: skip
             out[role] = out.get(role, 0.0) + sum(child.cpu_times()[:2])
         except psutil.NoSuchProcess:
             continue

@@ -24,7 +24,7 @@ def _settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     values = {}
     if args.data_dir is not None:
         values["data_dir"] = args.data_dir
-    for name in ("host", "port", "workers", "scheduler", "worker_memory"):
+    for name in ("host", "port", "workers", "scheduler", "worker_memory", "http_processes"):
         if getattr(args, name, None) is not None:
             values[name] = getattr(args, name)
     try:
@@ -73,10 +73,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
     from rangefuse.storage import Store
 
+    from ._malloc import tune_malloc
     from .accounts import Accounts
     from .app import create_app
 
     settings = _settings(args)
+    tune_malloc()
     app = create_app(settings)  # creates the store when missing
     print(f"kernels: {_kernels_note(settings.scheduler)}", flush=True)
     with Store.open(settings.data_dir) as store, Accounts(store.catalog.path) as accounts:
@@ -86,9 +88,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             print(f"first start: created a token for tenant 'default': {token}", flush=True)
             print(f"first start: admin token (for /metrics; no scenes): {admin}", flush=True)
             print("  use them as: Authorization: Bearer TOKEN", flush=True)
-    uvicorn.run(
+    config = uvicorn.Config(
         app, host=settings.host, port=settings.port, log_level="info", log_config=_log_config()
     )
+    # bound here, not by uvicorn: the other HTTP processes answer on the same socket
+    app.state.socket = config.bind_socket()
+    uvicorn.Server(config).run(sockets=[app.state.socket])
     return 0
 
 
@@ -142,6 +147,12 @@ def serve_arguments(serve: argparse.ArgumentParser) -> None:
     serve.add_argument(
         "--port", type=positive_int, default=None, help="port (RANGEFUSE_PORT, default 8000)"
     )
+    serve.add_argument(
+        "--http-processes", type=positive_int, default=None, metavar="N",
+        help="processes answering requests on the port, each with its own interpreter: more "
+        "uploads a second on a machine with cores to spare (RANGEFUSE_HTTP_PROCESSES, default "
+        "1)",
+    )  # fmt: skip
     serve.add_argument(
         "--workers", type=positive_int, default=None,
         help="Dask worker processes to start for the jobs' units of work (RANGEFUSE_WORKERS, "

@@ -33,7 +33,8 @@ from .api.deps import Services, ThreadStores
 from .api.limits import BodyLimit
 from .api.routes import ROUTERS
 from .commits import UploadCommitter
-from .jobs import JobRunner
+from .http_processes import HttpProcesses
+from .jobs import JobRunner, JobsElsewhere
 from .queue import JobQueue
 from .settings import Settings
 from .uploads import UploadError
@@ -116,34 +117,47 @@ def _add_api_docs(app: FastAPI, openapi_url: str) -> None:
 # --- the application --------------------------------------------------------------------------
 
 
-def create_app(settings: Settings) -> FastAPI:
-    """The service over ``settings.data_dir`` (a store, created when missing)."""
+def create_app(settings: Settings, primary: bool = True) -> FastAPI:
+    """The service over ``settings.data_dir`` (a store, created when missing).
+
+    ``primary``: the process that also runs the jobs and starts the service's other HTTP
+    processes (:mod:`service.http_processes`); those are created with ``primary=False``."""
     data_dir = Path(settings.data_dir)
     with Store.open(data_dir, create=True) as store:
         db_path = store.catalog.path  # the service's tables live in the catalog's file
     accounts = Accounts(db_path, settings.idempotency_ttl_s)
+    queue = JobQueue(db_path)
     services = Services(
         settings=settings,
         store=ThreadStores(data_dir),
         accounts=accounts,
-        queue=JobQueue(db_path),
-        jobs=JobRunner(data_dir, settings),
+        queue=queue,
+        jobs=JobRunner(data_dir, settings) if primary else JobsElsewhere(queue),
         commits=UploadCommitter(data_dir, accounts),
     )
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        with Store.open(data_dir) as s:  # uploads never acknowledged before a crash
-            for row in s.catalog.scenes():
-                s.cleanup_uploads(row.id)
+        others: HttpProcesses | None = None
+        if primary:  # before any upload is taken, by this process or the others
+            with Store.open(data_dir) as s:  # uploads never acknowledged before a crash
+                for row in s.catalog.scenes():
+                    s.cleanup_uploads(row.id)
         services.commits.start()
-        await run_in_threadpool(services.jobs.start)  # starts (or joins) the Dask cluster
+        if primary:
+            await run_in_threadpool(services.jobs.start)  # starts (or joins) the Dask cluster
+            listening = getattr(app.state, "socket", None)  # set by ``rangefuse serve``
+            if listening is not None and settings.http_processes > 1:
+                others = HttpProcesses(settings, listening)
+                others.start()
         # what start-up made (modules, the app, numba, Dask: some 240,000 objects) is never
         # collected: out of the collector's sight. A full collection under upload load took
         # 0.11 to 0.16 s holding the GIL, every request in flight waiting on it (p99 255-287
         # ms in benchmarks/service_load.py); frozen, none took over 5 ms (p99 167-174 ms)
         gc.freeze()
         yield
+        if others is not None:  # they finish their requests and store their uploads
+            await run_in_threadpool(others.stop)
         await run_in_threadpool(services.commits.stop)  # stores the uploads in flight
         await run_in_threadpool(services.jobs.stop)
 

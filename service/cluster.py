@@ -36,6 +36,8 @@ from distributed import Client, Future, wait
 from distributed.scheduler import KilledWorker
 from rangefuse.storage.units import MeshUnit, PlanUnit, TileUnit
 
+from ._malloc import with_tunables
+
 __all__ = ["Cluster", "DaskRunner", "RunInterruptedError", "UnitFailedError"]
 
 log = logging.getLogger("rangefuse.cluster")
@@ -306,13 +308,19 @@ class _LocalProcesses:
         try:
             file = Path(self._folder.name) / "scheduler.json"
             cores = os.cpu_count() or 1
-            env = {**QUIET_DASK, **os.environ, "NUMBA_NUM_THREADS": str(max(1, cores // workers))}
+            env = with_tunables(
+                {**QUIET_DASK, **os.environ, "NUMBA_NUM_THREADS": str(max(1, cores // workers))}
+            )
             # the scheduler gives up on a unit after this many dead workers (this process's
             # dask config, e.g. DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES)
             failures = dask.config.get("distributed.scheduler.allowed-failures")
             scheduler_env = {**env, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": str(failures)}
+            # the scheduler unpickles each graph's units, importing what they name: numba,
+            # zarr and the engine took it 1.5 s of CPU on the first job, under that job's
+            # uploads; preloaded, they load while the service starts
             self._spawn(["distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0",
-                         "--dashboard-address", "127.0.0.1:0", "--scheduler-file", str(file)],
+                         "--dashboard-address", "127.0.0.1:0", "--scheduler-file", str(file),
+                         "--preload", "rangefuse.storage.units"],
                         scheduler_env)  # fmt: skip
             deadline = time.monotonic() + 60
             while not file.exists():

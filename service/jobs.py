@@ -12,7 +12,8 @@ in this process, and the catalog never leaves it.
 - A job whose unit waits on a worker compiling kernels (a cold numba cache) says so in its
   ``message`` (:class:`_Compilations`; the workers report it, :mod:`service.worker`).
 - ``cancel`` stops a job between units (nothing is committed; what was staged is dropped by
-  the next run): the job reads ``cancelled``.
+  the next run): the job reads ``cancelled``. A cancellation recorded in the queue by another
+  process of the service (``settings.http_processes``) is noticed within ``poll_s``.
 - Stopping the service (SIGTERM) interrupts the running jobs the same way and puts them back
   in the queue; a killed service leaves them ``running``, and the next start queues them
   again. Fusion and extraction are exact and can run again, so a resumed job gives the
@@ -29,10 +30,9 @@ import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
-from rangefuse.engine.grid import unique_keys
 from rangefuse.storage import Store, open_scene
 from rangefuse.storage._files import atomic_write
 from rangefuse.storage.scene import Scene
@@ -44,9 +44,9 @@ from .previews import make_preview
 from .queue import JobQueue, JobRow
 from .settings import Settings
 from .warmup import COMPILING
-from .worker import COMPILE_TOPIC, OnJob
+from .worker import COMPILE_TOPIC, OnJob, load_kernels
 
-__all__ = ["COMPILING_MESSAGE", "JobRunner", "new_id", "run_job"]
+__all__ = ["COMPILING_MESSAGE", "JobRunner", "Jobs", "JobsElsewhere", "new_id", "run_job"]
 
 log = logging.getLogger("rangefuse.jobs")
 
@@ -141,13 +141,6 @@ def _reconstruct(
             **counts}  # fmt: skip
 
 
-def _load_planning_kernels() -> None:
-    """Load the kernels a job's planning runs in this process (the tile keys' packing).
-    numba sets up its compiler the first time a process loads a kernel, about half a second
-    that holds the GIL: done at start, not under the first job while requests are served."""
-    unique_keys(np.zeros((1, 3), np.int64))
-
-
 class _OnJobRunner:
     """A job's runner whose units report the compilations they cause as the job's
     (:class:`service.worker.OnJob`)."""
@@ -221,6 +214,46 @@ class _Running:
     scene_id: str | None
 
 
+class Jobs(Protocol):
+    """The job runner as the routes use it: :class:`JobRunner` in the process that runs it,
+    :class:`JobsElsewhere` in the service's other HTTP processes."""
+
+    def start(self) -> None: ...
+    def stop(self) -> None: ...
+    def wake(self) -> None: ...
+    def cancel(self, job_id: str, queue: JobQueue) -> JobRow | None: ...
+    def workers(self) -> int: ...
+
+
+class JobsElsewhere:
+    """The job runner seen from an HTTP process that does not run it: the first process of
+    the service runs it (:mod:`service.http_processes`) and looks at the queue every
+    ``poll_s``, where it finds the jobs queued and the cancellations recorded here; the
+    workers are those it last recorded."""
+
+    def __init__(self, queue: JobQueue) -> None:
+        self._queue = queue
+
+    def start(self) -> None:
+        pass
+
+    def stop(self) -> None:
+        pass
+
+    def wake(self) -> None:
+        pass  # the runner looks every poll_s
+
+    def cancel(self, job_id: str, queue: JobQueue) -> JobRow | None:
+        return queue.cancel(job_id)
+
+    def workers(self) -> int:
+        return self._queue.workers()
+
+
+#: How often the runner records its workers for the other HTTP processes (seconds).
+_WORKERS_EVERY_S = 1.0
+
+
 class JobRunner:
     """Claims queued jobs and carries them out (see the module's note)."""
 
@@ -234,6 +267,9 @@ class JobRunner:
         self._wake = threading.Event()
         self._compilations = _Compilations(self._wake.set)
         self._thread = threading.Thread(target=self._loop, name="rangefuse-jobs", daemon=True)
+        self._state: JobQueue | None = None  # where the workers are recorded
+        self._workers_seen = 0
+        self._workers_asked = float("-inf")
 
     def _queue(self) -> JobQueue:
         with Store.open(self.data_dir) as store:
@@ -242,11 +278,13 @@ class JobRunner:
     def start(self) -> None:
         """Put jobs a stopped service left running back in the queue, start or join the
         cluster, and begin claiming jobs."""
+        self._state = self._queue()
+        self._state.set_workers(0)  # none until the cluster's have joined
         with self._queue() as queue:
             resumed = queue.requeue_running()
         if resumed:
             log.info("resuming %d interrupted jobs", resumed)
-        _load_planning_kernels()
+        load_kernels()  # numba's start, not under the first job while requests are served
         s = self.settings
         self.cluster = Cluster(s.workers, s.worker_memory, s.scheduler)
         self.cluster.client.subscribe_topic(COMPILE_TOPIC, self._compilations.on_event)
@@ -262,8 +300,15 @@ class JobRunner:
         return _OnJobRunner(self.cluster.runner(interrupted), job_id)
 
     def workers(self) -> int:
-        """Workers that can run units now (0: jobs cannot make progress)."""
-        return 0 if self.cluster is None else self.cluster.n_workers()
+        """Workers that can run units now (0: jobs cannot make progress); a number that
+        changed is recorded for the other HTTP processes."""
+        n = 0 if self.cluster is None else self.cluster.n_workers()
+        with self._lock:
+            changed = self._workers_seen != n
+            self._workers_seen = n
+        if changed and self._state is not None:
+            self._state.set_workers(n)
+        return n
 
     def cancel(self, job_id: str, queue: JobQueue) -> JobRow | None:
         """Cancel a job: a queued one at once, a running one between two of its units."""
@@ -286,12 +331,16 @@ class JobRunner:
             thread.join(timeout=60)
         if self.cluster is not None:
             self.cluster.close()
+        if self._state is not None:
+            self._state.close()
 
     def _loop(self) -> None:
         with self._queue() as queue:
             while not self._stop.is_set():
                 try:
                     self._show_compilations(queue)
+                    self._notice_cancellations(queue)
+                    self._record_workers()
                     self._claim(queue)
                 except Exception as exc:  # the catalog cannot be written (a full disk): later
                     log.warning("claiming jobs failed, trying again: %s", exc)
@@ -303,6 +352,23 @@ class JobRunner:
         """Record on each running job whether a worker compiles kernels for it now."""
         for job_id, compiling in self._compilations.changes().items():
             queue.set_message(job_id, COMPILING_MESSAGE if compiling else None)
+
+    def _notice_cancellations(self, queue: JobQueue) -> None:
+        """Stop the running jobs that another process of the service cancelled."""
+        with self._lock:
+            running = dict(self._running)
+        if running:
+            for job_id in queue.cancelling():
+                if job_id in running:
+                    running[job_id].cancelled.set()
+
+    def _record_workers(self) -> None:
+        """Keep the workers recorded for the other HTTP processes' ``/healthz`` (asking the
+        scheduler at most every :data:`_WORKERS_EVERY_S`; :meth:`workers` records)."""
+        now = time.monotonic()
+        if now - self._workers_asked >= _WORKERS_EVERY_S:
+            self._workers_asked = now
+            self.workers()
 
     def _claim(self, queue: JobQueue) -> None:
         """Start queued jobs while fewer than ``settings.jobs`` run (one per scene)."""

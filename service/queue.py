@@ -35,6 +35,7 @@ CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state, seq);
 CREATE TABLE IF NOT EXISTS meshes(
     scene_id TEXT PRIMARY KEY, job_id TEXT NOT NULL, path TEXT NOT NULL, etag TEXT NOT NULL,
     faces INTEGER NOT NULL, created_at REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS runner(name TEXT PRIMARY KEY, value INTEGER NOT NULL);
 """
 
 #: States of a job: ``cancelling`` is a running job asked to stop; the last three are final.
@@ -284,6 +285,20 @@ class JobQueue:
             self._db.run("UPDATE jobs SET state='cancelling' WHERE id=? AND state='running'",
                          (job_id,))  # fmt: skip
         return self.job(job_id)
+
+    def cancelling(self) -> list[str]:
+        """Ids of the running jobs asked to stop (by any process of the service)."""
+        return [str(r[0]) for r in self._db.rows("SELECT id FROM jobs WHERE state='cancelling'")]
+
+    # --- the runner, as the processes that do not run it see it -------------------------------
+    def set_workers(self, n: int) -> None:
+        """Record how many workers the job runner has (0: jobs cannot make progress)."""
+        self._db.run("INSERT OR REPLACE INTO runner(name, value) VALUES('workers', ?)", (n,))
+
+    def workers(self) -> int:
+        """The workers the job runner last recorded (0 before it has started)."""
+        rows = self._db.rows("SELECT value FROM runner WHERE name='workers'")
+        return int(rows[0][0]) if rows else 0
 
     def counts(self) -> dict[str, int]:
         """For metrics: the number of jobs in each state that has any."""

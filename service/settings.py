@@ -40,6 +40,12 @@ class Settings(BaseSettings):
         description="tcp://HOST:PORT of a running Dask scheduler to join instead of starting "
         "workers (the store must be on a file system every worker sees)",
     )
+    http_processes: int = Field(
+        default=1, ge=1, le=64,
+        description="processes answering HTTP requests on the service's socket, each with "
+        "its own Python interpreter (uploads are CPU-bound in Python: one process tops out "
+        "near one core); the first also runs the jobs",
+    )  # fmt: skip
     jobs: int = Field(default=2, ge=1, le=64, description="jobs carried out at once")
     cache_mb: float = Field(default=512.0, gt=0, description="tile cache of each job")
     poll_s: float = Field(default=0.1, gt=0, description="how often the job runner looks")

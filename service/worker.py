@@ -25,7 +25,7 @@ from typing import Any
 
 from . import numba_cache_dir
 
-__all__ = ["COMPILE_TOPIC", "OnJob", "dask_setup"]
+__all__ = ["COMPILE_TOPIC", "OnJob", "dask_setup", "load_kernels"]
 
 log = logging.getLogger("rangefuse.worker")
 
@@ -42,6 +42,21 @@ def dask_setup(worker: object) -> None:
         "rangefuse worker: numba cache %s, %s numba threads; %s", numba_cache_dir(),
         os.environ.get("NUMBA_NUM_THREADS", "all cores"), cache_note(),
     )  # fmt: skip
+    load_kernels()
+
+
+def load_kernels() -> None:
+    """Import the engine and the store and load one kernel, in a process that will run units
+    or plan them. The first unit of a worker imported zarr, numba and the engine (about a
+    second), and numba set up its compiler on the first kernel it loaded (half a second
+    holding the GIL, SciPy's import included): 2 to 3 s of CPU under the first job's
+    uploads. Done when the process starts instead (a cold cache compiles this one small
+    kernel here)."""
+    import numpy as np
+    import rangefuse.storage.units  # noqa: F401  (what units name: the store, the engine)
+    from rangefuse.engine.grid import unique_keys
+
+    unique_keys(np.zeros((1, 3), np.int64))
 
 
 class OnJob:

@@ -32,7 +32,7 @@ from rangefuse.storage.catalog import SceneRow
 
 from ..accounts import Accounts, Caller
 from ..commits import UploadCommitter
-from ..jobs import JobRunner
+from ..jobs import Jobs
 from ..queue import JobQueue
 from ..settings import Settings
 
@@ -76,7 +76,7 @@ class Services:
     store: ThreadStores
     accounts: Accounts
     queue: JobQueue
-    jobs: JobRunner
+    jobs: Jobs
     #: Stores uploads in batches (group commit), checking their idempotency keys.
     commits: UploadCommitter
 
@@ -102,7 +102,7 @@ async def get_queue(request: Request) -> JobQueue:
     return _services(request).queue
 
 
-async def get_jobs(request: Request) -> JobRunner:
+async def get_jobs(request: Request) -> Jobs:
     return _services(request).jobs
 
 
@@ -114,7 +114,7 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 StoreDep = Annotated[StoreOpener, Depends(get_store)]
 AccountsDep = Annotated[Accounts, Depends(get_accounts)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
-JobsDep = Annotated[JobRunner, Depends(get_jobs)]
+JobsDep = Annotated[Jobs, Depends(get_jobs)]
 CommitsDep = Annotated[UploadCommitter, Depends(get_commits)]
 
 
