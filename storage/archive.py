@@ -1,20 +1,25 @@
-"""The immutable scan archive of one scene (docs/storage.md, layout 1).
+"""The immutable scan archive of one scene (docs/storage.md, layout 3).
 
-Each archived scan is a Zarr v3 group ``scans/<scan_id>/`` inside the scene's group: an array
-``range`` (float32 H x W, one chunk, NaN and ``+inf`` kept bit for bit) and the attributes
-``sensor`` (:meth:`engine.Sensor.to_dict`), ``pose`` (4 x 4 list), ``noise``
-(:meth:`engine.NoiseModel.to_dict` or null), ``name`` and ``checksum``.
+Each archived scan is a Zarr v3 group inside the scene's group: an array ``range`` (float32
+H x W, one chunk, NaN and ``+inf`` kept bit for bit) and the attributes ``sensor``
+(:meth:`engine.Sensor.to_dict`), ``pose`` (4 x 4 list), ``noise``
+(:meth:`engine.NoiseModel.to_dict` or null), ``name`` and ``checksum``. Since layout 3 the
+group is one file, ``scans/<scan_id>.zip``: a zip archive (stored, not deflated) of the
+group's three files, as zarr's ``ZipStore`` reads it; the folders ``scans/<scan_id>/`` that
+earlier layouts wrote are read as before.
 
-A scan is written once. :meth:`ScanArchive.put` writes the group into
-``scans/.tmp-<scan_id>-<random>/``, fsyncs every file and folder, renames it into place and
-fsyncs ``scans/``: a reader (or a recovery after kill -9) sees the whole scan or none of it;
-a killed put leaves a ``.tmp-*`` folder that :meth:`ScanArchive.remove_temporaries` deletes.
+A scan is written once. :meth:`ScanArchive.stage` writes the file as
+``scans/.tmp-<scan_id>-<random>.zip``; :meth:`ScanArchive.publish` fsyncs it, links it into
+place (never over another entry) and fsyncs ``scans/`` once for all the scans it publishes:
+a reader (or a recovery after kill -9) sees the whole scan or none of it; a killed put
+leaves a ``.tmp-*`` file that :meth:`ScanArchive.remove_temporaries` deletes.
 :meth:`ScanArchive.get` verifies the checksum (:func:`scan_checksum`) before returning.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
@@ -22,6 +27,7 @@ import re
 import secrets
 import shutil
 import threading
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,10 +54,12 @@ __all__ = [
 SCANS_GROUP = "scans"
 #: Name of the range array of an archived scan.
 RANGE_ARRAY = "range"
-#: Prefix of the folders of puts in progress (and of deletes in progress).
+#: Prefix of the files of puts in progress (and of deletes in progress).
 TMP_PREFIX = ".tmp-"
 #: zstd level of archived range maps (no-return areas shrink to almost nothing).
 RANGE_ZSTD_LEVEL = 1
+#: Suffix of an entry's file (layout 3); an entry without it is a folder (layouts 1, 2).
+ENTRY_SUFFIX = ".zip"
 #: Longest scan id.
 MAX_SCAN_ID = 128
 
@@ -86,13 +94,13 @@ def _canonical_json(value: Any) -> bytes:
 def _checksum(range_m: np.ndarray, pose: np.ndarray, sensor: Any, noise: Any) -> str:
     h = hashlib.sha256()
     for part in (
-        np.ascontiguousarray(range_m, "<f4").tobytes(),
-        np.ascontiguousarray(pose, "<f8").tobytes(),
+        np.ascontiguousarray(range_m, "<f4"),  # hashed in place: no copy of the ranges
+        np.ascontiguousarray(pose, "<f8"),
         _canonical_json(sensor),
         _canonical_json(noise),
     ):
-        h.update(len(part).to_bytes(8, "little"))
-        h.update(part)
+        h.update(memoryview(part).nbytes.to_bytes(8, "little"))
+        h.update(memoryview(part).cast("B"))
     return "sha256:" + h.hexdigest()
 
 
@@ -110,14 +118,17 @@ def scan_checksum(scan: Scan) -> str:
 
 @dataclass(frozen=True)
 class StagedScan:
-    """A scan written to a temporary folder of the archive (:meth:`ScanArchive.stage`)."""
+    """A scan written to a temporary file of the archive (:meth:`ScanArchive.stage`)."""
 
     scan_id: str
     tmp: Path
     final: Path
     checksum: str
-    #: Its files, then its folders (deepest first): what to fsync.
-    paths: list[Path]
+
+    def discard(self) -> None:
+        """Remove the temporary file (the scan will not be published)."""
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.tmp)
 
 
 def _json(value: Any) -> bytes:
@@ -145,23 +156,54 @@ def _range_metadata(shape: tuple[int, ...]) -> dict[str, Any]:
     }
 
 
-def _write_entry(root: Path, attrs: dict[str, Any], range_m: np.ndarray) -> list[Path]:
-    """Write an archive entry as a Zarr v3 group at ``root``: its ``zarr.json`` (with
-    ``attrs``), the array ``range`` and its one chunk ``range/c/0/0``. Written directly, not
-    through zarr-python (whose asynchronous store costs about 13 ms a scan); returns the
-    files and folders written, folders deepest first."""
+#: The members of an entry's file: the group's metadata, the array's, the one chunk.
+_GROUP_META = "zarr.json"
+_RANGE_META = f"{RANGE_ARRAY}/zarr.json"
+_RANGE_CHUNK = f"{RANGE_ARRAY}/c/0/0"
+
+
+def _write_entry(path: Path, attrs: dict[str, Any], range_m: np.ndarray) -> None:
+    """Write an archive entry as the file ``path``: a zip (members stored) of a Zarr v3
+    group, its ``zarr.json`` (with ``attrs``), the array's ``range/zarr.json`` and its one
+    chunk ``range/c/0/0``, as zarr's ``ZipStore`` reads it. Written directly, not through
+    zarr-python (whose asynchronous store cost about 13 ms a scan)."""
     data = np.ascontiguousarray(range_m, "<f4")
-    chunk_dir = root / RANGE_ARRAY / "c" / "0"
-    chunk_dir.mkdir(parents=True)
-    files = {
-        root / "zarr.json": _json({"attributes": attrs, "zarr_format": 3, "node_type": "group"}),
-        root / RANGE_ARRAY / "zarr.json": _json(_range_metadata(data.shape)),
-        chunk_dir / "0": Zstd(level=RANGE_ZSTD_LEVEL).encode(data.tobytes()),
+    members = {
+        _GROUP_META: _json({"attributes": attrs, "zarr_format": 3, "node_type": "group"}),
+        _RANGE_META: _json(_range_metadata(data.shape)),
+        _RANGE_CHUNK: Zstd(level=RANGE_ZSTD_LEVEL).encode(data),
     }
-    for path, content in files.items():
-        with open(path, "wb") as fh:
-            fh.write(content)
-    return [*files, chunk_dir, chunk_dir.parent, root / RANGE_ARRAY, root]
+    with zipfile.ZipFile(path, "x", zipfile.ZIP_STORED) as zf:
+        for name, content in members.items():
+            zf.writestr(name, content)
+
+
+def _decode_range(meta: dict[str, Any], chunk: bytes | None) -> np.ndarray:
+    """The range map of an entry from its array metadata and chunk: the layout this module
+    writes (float32, one chunk, little-endian bytes then zstd, at any level)."""
+    shape = tuple(int(n) for n in meta["shape"])
+    codecs = [c["name"] for c in meta["codecs"]]
+    endian = meta["codecs"][0].get("configuration", {}).get("endian")
+    if meta["data_type"] != "float32" or len(shape) != 2:
+        raise ValueError(f"range is {meta['data_type']} {shape}, expected float32 H x W")
+    if codecs != ["bytes", "zstd"] or endian != "little":
+        raise ValueError(f"range codecs {codecs} ({endian}), expected bytes (little), zstd")
+    if [int(n) for n in meta["chunk_grid"]["configuration"]["chunk_shape"]] != list(shape):
+        raise ValueError("range is not one chunk")
+    if chunk is None:
+        raise ValueError(f"range data {_RANGE_CHUNK} is missing")
+    raw = Zstd().decode(chunk)
+    if len(raw) != 4 * shape[0] * shape[1]:
+        raise ValueError(f"range data is {len(raw)} bytes, expected {4 * shape[0] * shape[1]}")
+    return np.frombuffer(raw, "<f4").reshape(shape).astype(np.float32)
+
+
+def _member(path: Path, name: str) -> bytes:
+    """One file of an entry (``FileNotFoundError`` or ``KeyError`` when it has none)."""
+    if path.is_dir():
+        return (path / name).read_bytes()
+    with zipfile.ZipFile(path) as zf:
+        return zf.read(name)
 
 
 _GROUP_LOCK = threading.Lock()
@@ -181,8 +223,17 @@ class ScanArchive:
         #: The folder of the archive group (``<group>/scans``).
         self.path = self.group_path / SCANS_GROUP
 
-    def _scan_path(self, scan_id: str) -> Path:
-        return self.path / check_scan_id(scan_id)
+    def _file(self, scan_id: str) -> Path:
+        """Where the entry of ``scan_id`` is written (layout 3)."""
+        return self.path / f"{check_scan_id(scan_id)}{ENTRY_SUFFIX}"
+
+    def _entry(self, scan_id: str) -> Path | None:
+        """The entry of ``scan_id`` on disk: its file, or its folder (layouts 1 and 2)."""
+        file = self._file(scan_id)
+        if file.is_file():
+            return file
+        folder = self.path / scan_id
+        return folder if folder.is_dir() else None
 
     def _ensure_group(self) -> None:
         """Create the scene group and ``scans/`` if missing, durably."""
@@ -217,14 +268,14 @@ class ScanArchive:
         return staged.checksum
 
     def stage(self, scan_id: str, scan: Scan, name: str | None = None) -> StagedScan:
-        """Write ``scan`` into a temporary folder of the archive, not yet durable nor visible;
+        """Write ``scan`` into a temporary file of the archive, not yet durable nor visible;
         :meth:`publish` makes it both (several at once: one round of fsyncs)."""
-        final = self._scan_path(scan_id)
+        final = self._file(scan_id)
         if not isinstance(scan, Scan):
             raise ArchiveError(f"scan {scan_id!r}: expected an engine.Scan, got {type(scan)}")
         if name is not None and not isinstance(name, str):
             raise ArchiveError(f"scan {scan_id!r}: name must be a string or None, got {name!r}")
-        if final.exists():
+        if self._entry(scan_id) is not None:
             raise ArchiveError(f"scan {scan_id!r} is already in the archive; scans are immutable")
         self._ensure_group()
         sensor = scan.sensor.to_dict()
@@ -237,61 +288,89 @@ class ScanArchive:
             "name": name,
             "checksum": checksum,
         }
-        tmp = self.path / f"{TMP_PREFIX}{scan_id}-{secrets.token_hex(8)}"
+        staged = StagedScan(
+            scan_id, self.path / f"{TMP_PREFIX}{scan_id}-{secrets.token_hex(8)}{ENTRY_SUFFIX}",
+            final, checksum,
+        )  # fmt: skip
         try:
-            paths = _write_entry(tmp, attrs, scan.range_m)
+            _write_entry(staged.tmp, attrs, scan.range_m)
         except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
+            staged.discard()
             raise
-        return StagedScan(scan_id, tmp, final, checksum, paths)
+        return staged
 
     def publish(self, staged: Sequence[StagedScan]) -> None:
-        """Make staged scans durable and visible: fsync all their files and folders (side by
-        side), rename each into place, fsync ``scans/``. On an error every staged folder is
-        removed and nothing published stays (the error is raised)."""
+        """Make staged scans durable and visible: fsync their files (side by side), link
+        each into place, fsync ``scans/`` once. On an error every staged file is removed and
+        nothing published stays (the error is raised)."""
         done: list[StagedScan] = []
         try:
-            fsync_paths([p for entry in staged for p in entry.paths])
+            fsync_paths([entry.tmp for entry in staged])
             for entry in staged:
-                try:
-                    os.rename(entry.tmp, entry.final)  # fails on a non-empty target
-                except OSError as exc:
-                    if entry.final.exists():
-                        raise ArchiveError(
-                            f"scan {entry.scan_id!r} is already in the archive; scans are immutable"
-                        ) from exc
-                    raise
+                self._place(entry)
                 done.append(entry)
             fsync_path(self.path)
         except BaseException:
             for entry in staged:
-                shutil.rmtree(entry.tmp, ignore_errors=True)
+                entry.discard()
             for entry in done:
                 self.delete(entry.scan_id)
             raise
 
+    def _place(self, entry: StagedScan) -> None:
+        """Give a staged file its final name, never over another entry: a hard link (which
+        fails on an existing name), then the temporary name removed; a rename after a check
+        on file systems without hard links."""
+        taken = ArchiveError(
+            f"scan {entry.scan_id!r} is already in the archive; scans are immutable"
+        )
+        if (self.path / entry.scan_id).is_dir():  # an entry of layout 1 or 2
+            raise taken
+        try:
+            os.link(entry.tmp, entry.final)
+        except FileExistsError:
+            raise taken from None
+        except OSError as exc:
+            if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK):
+                raise
+            if entry.final.exists():
+                raise taken from None
+            os.rename(entry.tmp, entry.final)
+            return
+        os.unlink(entry.tmp)
+
     def discard(self, staged: Sequence[StagedScan]) -> None:
         """Remove staged scans that will not be published."""
         for entry in staged:
-            shutil.rmtree(entry.tmp, ignore_errors=True)
+            entry.discard()
 
     # --- reading -----------------------------------------------------------------------------
     def _attrs(self, scan_id: str) -> dict[str, Any]:
-        path = self._scan_path(scan_id)
-        meta_path = path / "zarr.json"
-        if not meta_path.is_file():
-            if path.exists():
-                raise ArchiveError(f"scan {scan_id!r}: archive entry is incomplete (no zarr.json)")
+        return self._group(scan_id)[1]
+
+    def _group(self, scan_id: str) -> tuple[Path, dict[str, Any]]:
+        """The entry of ``scan_id`` and its group's attributes."""
+        path = self._entry(scan_id)
+        if path is None:
             raise ArchiveError(f"scan {scan_id!r} is not in the archive")
         try:
-            meta = json.loads(meta_path.read_bytes())
-            attrs = meta["attributes"]
+            raw = _member(path, _GROUP_META)
+        except (FileNotFoundError, KeyError) as exc:
+            raise ArchiveError(
+                f"scan {scan_id!r}: archive entry is incomplete (no zarr.json)"
+            ) from exc
+        except (OSError, zipfile.BadZipFile) as exc:
+            raise ArchiveError(f"scan {scan_id!r}: archive entry is unreadable ({exc})") from exc
+        try:
+            attrs = json.loads(raw)["attributes"]
         except (ValueError, KeyError, TypeError) as exc:
             raise ArchiveError(f"scan {scan_id!r}: unreadable metadata ({exc})") from exc
+        if not isinstance(attrs, dict):
+            raise ArchiveError(f"scan {scan_id!r}: unreadable metadata (attributes {attrs!r})")
         missing = [k for k in ("sensor", "pose", "noise", "checksum") if k not in attrs]
         if missing:
             raise ArchiveError(f"scan {scan_id!r}: archive entry lacks {', '.join(missing)}")
-        return dict(attrs)
+        return path, dict(attrs)
 
     def checksum(self, scan_id: str) -> str:
         """The stored checksum of ``scan_id`` (not verified; :meth:`get` verifies)."""
@@ -317,16 +396,13 @@ class ScanArchive:
             When the scan is not archived, a part is missing or unreadable, or the checksum
             does not match (the message names the scan).
         """
-        attrs = self._attrs(scan_id)
-        path = self._scan_path(scan_id)
+        path, attrs = self._group(scan_id)
         try:
-            array = zarr.open_array(LocalStore(path), path=RANGE_ARRAY, mode="r", zarr_format=3)
-            if array.dtype != np.float32 or array.ndim != 2:
-                raise ValueError(f"range is {array.dtype} {array.shape}, expected float32 H x W")
-            chunk = path / RANGE_ARRAY / array.metadata.encode_chunk_key((0, 0))
-            if not chunk.is_file():
-                raise ValueError(f"range data {chunk} is missing")
-            range_m = np.ascontiguousarray(array[...], np.float32)
+            try:
+                chunk: bytes | None = _member(path, _RANGE_CHUNK)
+            except (FileNotFoundError, KeyError):
+                chunk = None
+            range_m = _decode_range(json.loads(_member(path, _RANGE_META)), chunk)
             pose = np.array(attrs["pose"], np.float64)
         except Exception as exc:
             raise ArchiveError(f"scan {scan_id!r}: archive entry is unreadable ({exc})") from exc
@@ -350,18 +426,23 @@ class ScanArchive:
             entries = list(os.scandir(self.path))
         except FileNotFoundError:
             return []
-        return sorted(
-            e.name
-            for e in entries
-            if not e.name.startswith(".")
-            and e.name not in _RESERVED
-            and _SCAN_ID.fullmatch(e.name)
-            and e.is_dir(follow_symlinks=False)
-        )
+        found = set()
+        for e in entries:
+            if e.name.startswith("."):
+                continue
+            if e.is_dir(follow_symlinks=False):
+                scan_id = e.name
+            elif e.name.endswith(ENTRY_SUFFIX) and e.is_file(follow_symlinks=False):
+                scan_id = e.name[: -len(ENTRY_SUFFIX)]
+            else:
+                continue
+            if scan_id not in _RESERVED and _SCAN_ID.fullmatch(scan_id):
+                found.add(scan_id)
+        return sorted(found)
 
     def __contains__(self, scan_id: str) -> bool:
         try:
-            return self._scan_path(scan_id).is_dir()
+            return self._entry(scan_id) is not None
         except ArchiveError:
             return False
 
@@ -369,16 +450,21 @@ class ScanArchive:
     def delete(self, scan_id: str) -> None:
         """Remove ``scan_id`` from the archive durably; a missing scan is ignored.
 
-        The group is first renamed to a ``.tmp-*`` folder (fsynced), then removed: a kill
+        The entry is first renamed to a ``.tmp-*`` name (fsynced), then removed: a kill
         midway never leaves a half-deleted scan under its id.
         """
-        path = self._scan_path(scan_id)
-        if not path.exists():
+        path = self._entry(scan_id)
+        if path is None:
             return
-        doomed = self.path / f"{TMP_PREFIX}{scan_id}-{secrets.token_hex(8)}"
+        folder = path.is_dir()
+        suffix = "" if folder else ENTRY_SUFFIX
+        doomed = self.path / f"{TMP_PREFIX}{scan_id}-{secrets.token_hex(8)}{suffix}"
         os.rename(path, doomed)
         fsync_path(self.path)
-        shutil.rmtree(doomed)
+        if folder:
+            shutil.rmtree(doomed)
+        else:
+            os.unlink(doomed)
         fsync_path(self.path)
 
     def remove_temporaries(self) -> int:

@@ -42,8 +42,8 @@ __all__ = [
 #: The layout this rangefuse writes. Version 1 (tiles written in place, a journal of tiles in
 #: flight rebuilt at open) is read and upgraded on open: its marker is rewritten, and a
 #: scene's journal is rebuilt the first time the scene is opened (docs/storage.md).
-STORE_VERSION = 2
-_READS_VERSIONS = (1, 2)
+STORE_VERSION = 3
+_READS_VERSIONS = (1, 2, 3)
 _MARKER = "rangefuse-store.json"
 #: What a store holds before its marker is written: a creation killed midway is resumed.
 _CREATION_NAMES = frozenset(
@@ -134,7 +134,7 @@ class Store:
             raise StoreError(f"{path}: exists and is not an empty folder or a rangefuse store")
         path.mkdir(parents=True, exist_ok=True)
         catalog = Catalog(path / "catalog.sqlite")
-        if not marker.exists() or version != STORE_VERSION:  # new, or version 1 upgraded
+        if not marker.exists() or version != STORE_VERSION:  # new, or an older one upgraded
             _write_marker(path)
         return Store(path, catalog)
 
@@ -297,7 +297,7 @@ class Store:
     def discard_scans(pending: Sequence[PendingScan]) -> None:
         """Remove staged scans that will not be committed."""
         for p in pending:
-            shutil.rmtree(p.entry.tmp, ignore_errors=True)
+            p.entry.discard()
 
     def _archive(self, scene_id: str) -> ScanArchive:
         return ScanArchive(self.scene_path(scene_id) / "scene.zarr")

@@ -1,8 +1,11 @@
-"""The scan archive (storage.archive) on real Zarr directories."""
+"""The scan archive (storage.archive) on real files: each entry a zip of a Zarr v3 group
+(layout 3), the folders of layouts 1 and 2 still read."""
 
 from __future__ import annotations
 
 import json
+import zipfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +14,7 @@ import zarr
 from rangefuse.engine import NoiseModel, Scan
 from rangefuse.storage import archive as archive_module
 from rangefuse.storage.archive import ArchiveError, ScanArchive, check_scan_id, scan_checksum
-from zarr.storage import LocalStore
+from zarr.storage import LocalStore, ZipStore
 
 from tests import scenes
 
@@ -44,10 +47,8 @@ def test_round_trip_every_sensor(tmp_path: Path, name: str) -> None:
     assert back.sensor == scan.sensor
     assert back.noise == scan.noise
     assert archive.name(name) == f"{name}.npz"
-    # a plain zarr group any tool can read
-    group = zarr.open_group(LocalStore(tmp_path / "scene.zarr"), mode="r")
-    entry = group["scans"][name]
-    assert isinstance(entry, zarr.Group)
+    # a plain zarr group any tool can read, through zarr's ZipStore
+    entry = zarr.open_group(ZipStore(archive.path / f"{name}.zip", mode="r"), mode="r")
     assert entry.attrs["sensor"] == scan.sensor.to_dict()
     assert entry.attrs["checksum"] == checksum
     assert np.array_equal(entry["range"][...], scan.range_m, equal_nan=True)
@@ -63,7 +64,7 @@ def test_ids_delete_and_missing(tmp_path: Path) -> None:
     archive.delete("a.1")
     archive.delete("a.1")  # already gone: nothing to do
     assert archive.ids() == ["C_3", "b-2"]
-    assert not (archive.path / "a.1").exists()
+    assert not (archive.path / "a.1.zip").exists()
     assert not [p for p in archive.path.iterdir() if p.name.startswith(".")]
     with pytest.raises(ArchiveError, match="scan 'a.1' is not in the archive"):
         archive.get("a.1")
@@ -104,24 +105,44 @@ def test_good_ids_accepted() -> None:
         check_scan_id(3)  # type: ignore[arg-type]
 
 
+def _rewrite(entry: Path, name: str, change: Callable[[bytes], bytes | None]) -> None:
+    """Rewrite the member ``name`` of an entry's zip (``change`` returns None: drop it)."""
+    with zipfile.ZipFile(entry) as zf:
+        members = {n: zf.read(n) for n in zf.namelist()}
+    with zipfile.ZipFile(entry, "w") as zf:
+        for n, content in members.items():
+            new = change(content) if n == name else content
+            if new is not None:
+                zf.writestr(n, new)
+
+
+def _flip(content: bytes) -> bytes:
+    data = bytearray(content)
+    data[len(data) // 2] ^= 0x01
+    return bytes(data)
+
+
 def test_corrupt_range_chunk_detected(tmp_path: Path) -> None:
     archive = ScanArchive(tmp_path / "g")
     archive.put("s", _scan("pinhole_ray"))
-    chunk = archive.path / "s" / "range" / "c" / "0" / "0"
-    data = bytearray(chunk.read_bytes())
-    data[len(data) // 2] ^= 0x01
-    chunk.write_bytes(bytes(data))
+    _rewrite(archive.path / "s.zip", "range/c/0/0", _flip)
     with pytest.raises(ArchiveError, match="scan 's'"):
         archive.get("s")
+    (archive.path / "t.zip").write_bytes(b"not a zip")
+    with pytest.raises(ArchiveError, match="scan 't': archive entry is unreadable"):
+        archive.get("t")
 
 
 def test_tampered_pose_fails_the_checksum(tmp_path: Path) -> None:
     archive = ScanArchive(tmp_path / "g")
     archive.put("s", _scan("spherical"))
-    meta_path = archive.path / "s" / "zarr.json"
-    meta = json.loads(meta_path.read_text())
-    meta["attributes"]["pose"][0][3] += 1e-9
-    meta_path.write_text(json.dumps(meta))
+
+    def nudge(content: bytes) -> bytes:
+        meta = json.loads(content)
+        meta["attributes"]["pose"][0][3] += 1e-9
+        return json.dumps(meta).encode()
+
+    _rewrite(archive.path / "s.zip", "zarr.json", nudge)
     with pytest.raises(ArchiveError, match="scan 's': checksum mismatch"):
         archive.get("s")
 
@@ -130,10 +151,10 @@ def test_missing_parts_detected(tmp_path: Path) -> None:
     archive = ScanArchive(tmp_path / "g")
     archive.put("s", _scan("linescan"))
     archive.put("t", _scan("linescan"))
-    (archive.path / "s" / "range" / "c" / "0" / "0").unlink()
+    _rewrite(archive.path / "s.zip", "range/c/0/0", lambda _: None)
     with pytest.raises(ArchiveError, match="scan 's': .*missing"):
         archive.get("s")
-    (archive.path / "t" / "zarr.json").unlink()
+    _rewrite(archive.path / "t.zip", "zarr.json", lambda _: None)
     with pytest.raises(ArchiveError, match="scan 't': archive entry is incomplete"):
         archive.get("t")
 
@@ -141,12 +162,14 @@ def test_missing_parts_detected(tmp_path: Path) -> None:
 def test_temporaries_removed_and_ignored(tmp_path: Path) -> None:
     archive = ScanArchive(tmp_path / "g")
     archive.put("kept", _scan("orthographic"))
-    leftover = archive.path / ".tmp-lost-0123456789abcdef"
-    (leftover / "range").mkdir(parents=True)
-    (leftover / "zarr.json").write_text("{}")
+    leftover = archive.path / ".tmp-lost-0123456789abcdef.zip"  # a put killed midway
+    leftover.write_bytes(b"PK")
+    old = archive.path / ".tmp-older-0123456789abcdef"  # one of layout 2
+    (old / "range").mkdir(parents=True)
+    (old / "zarr.json").write_text("{}")
     assert archive.ids() == ["kept"]
-    assert archive.remove_temporaries() == 1
-    assert not leftover.exists()
+    assert archive.remove_temporaries() == 2
+    assert not leftover.exists() and not old.exists()
     assert archive.ids() == ["kept"]
     assert archive.remove_temporaries() == 0
 
@@ -157,20 +180,17 @@ def test_failed_rename_leaves_nothing(tmp_path: Path, monkeypatch: pytest.Monkey
     def refuse(src: object, dst: object) -> None:
         raise OSError("disk on fire")
 
-    monkeypatch.setattr(archive_module.os, "rename", refuse)
+    monkeypatch.setattr(archive_module.os, "link", refuse)
     with pytest.raises(OSError, match="disk on fire"):
         archive.put("s", _scan("orthographic"))
     assert archive.ids() == []
     assert [p.name for p in archive.path.iterdir()] == ["zarr.json"]
 
 
-def test_entries_are_what_zarr_python_writes(tmp_path: Path) -> None:
-    """The archive writes its entries without zarr-python; the metadata is the same as
-    zarr-python writes for the same array, and the chunk the same bytes."""
-    scan = _scan("pinhole_z")
-    ScanArchive(tmp_path / "scene.zarr").put("a", scan)
-    ours = tmp_path / "scene.zarr" / "scans" / "a" / "range"
-    group = zarr.create_group(LocalStore(tmp_path / "theirs"), zarr_format=3)
+def _zarr_python_entry(path: Path, scan: Scan, attrs: dict | None = None) -> None:
+    """What zarr-python writes for an entry's group at ``path`` (a folder: the entries of
+    layouts 1 and 2 were these files)."""
+    group = zarr.create_group(LocalStore(path), zarr_format=3, attributes=attrs or {})
     group.create_array(
         "range",
         data=scan.range_m,
@@ -179,11 +199,39 @@ def test_entries_are_what_zarr_python_writes(tmp_path: Path) -> None:
         compressors=zarr.codecs.ZstdCodec(level=archive_module.RANGE_ZSTD_LEVEL),
         config={"write_empty_chunks": True},
     )
+
+
+def test_entries_are_what_zarr_python_writes(tmp_path: Path) -> None:
+    """The archive writes its entries without zarr-python; the metadata is the same as
+    zarr-python writes for the same array, and the chunk the same bytes."""
+    scan = _scan("pinhole_z")
+    ScanArchive(tmp_path / "scene.zarr").put("a", scan)
+    _zarr_python_entry(tmp_path / "theirs", scan)
     theirs = tmp_path / "theirs" / "range"
-    assert json.loads((ours / "zarr.json").read_text()) == json.loads(
-        (theirs / "zarr.json").read_text()
-    )
-    assert (ours / "c" / "0" / "0").read_bytes() == (theirs / "c" / "0" / "0").read_bytes()
+    with zipfile.ZipFile(tmp_path / "scene.zarr" / "scans" / "a.zip") as ours:
+        assert {i.compress_type for i in ours.infolist()} == {zipfile.ZIP_STORED}
+        assert json.loads(ours.read("range/zarr.json")) == json.loads(
+            (theirs / "zarr.json").read_text()
+        )
+        assert ours.read("range/c/0/0") == (theirs / "c" / "0" / "0").read_bytes()
+
+
+def test_entries_of_earlier_layouts_are_read_listed_and_deleted(tmp_path: Path) -> None:
+    """A folder entry, as layouts 1 and 2 wrote it, beside the files of layout 3."""
+    archive = ScanArchive(tmp_path / "scene.zarr")
+    new, old = _scan("pinhole_z", seed=1), _scan("spherical", seed=2)
+    archive.put("new", new)
+    attrs = {"sensor": old.sensor.to_dict(), "pose": old.T_W_S.tolist(), "noise": None,
+             "name": "old.npz", "checksum": scan_checksum(old)}  # fmt: skip
+    _zarr_python_entry(archive.path / "old", old, attrs)
+    assert archive.ids() == ["new", "old"] and "old" in archive
+    back = archive.get("old")
+    assert back.range_m.tobytes() == old.range_m.tobytes() and archive.name("old") == "old.npz"
+    with pytest.raises(ArchiveError, match="scan 'old' is already in the archive"):
+        archive.put("old", new)
+    archive.delete("old")
+    assert archive.ids() == ["new"] and not (archive.path / "old").exists()
+    assert archive.remove_temporaries() == 0
 
 
 def test_publishing_several_staged_scans_at_once(tmp_path: Path) -> None:
@@ -197,9 +245,9 @@ def test_publishing_several_staged_scans_at_once(tmp_path: Path) -> None:
         assert archive.get(k).range_m.tobytes() == v.range_m.tobytes()
     # a batch with one id already archived publishes nothing of its own
     again = [archive.stage("t0", scans["s0"]), archive.stage("t1", scans["s1"])]
-    (tmp_path / "scene.zarr" / "scans" / "t1").mkdir()
-    (tmp_path / "scene.zarr" / "scans" / "t1" / "x").write_text("taken")
+    (tmp_path / "scene.zarr" / "scans" / "t1.zip").write_text("taken")  # never overwritten
     with pytest.raises(ArchiveError, match="already in the archive"):
         archive.publish(again)
     assert "t0" not in archive.ids()
+    assert (tmp_path / "scene.zarr" / "scans" / "t1.zip").read_text() == "taken"
     assert not [p for p in (tmp_path / "scene.zarr" / "scans").iterdir() if p.name.startswith(".")]

@@ -23,8 +23,9 @@ import psutil
 import pytest
 from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
 from rangefuse.engine.synth import make_dataset
+from rangefuse.service._malloc import TUNABLES
 from rangefuse.service.cluster import Cluster
-from rangefuse.service.jobs import JobRunner, new_id
+from rangefuse.service.jobs import JobRunner, JobsElsewhere, new_id
 from rangefuse.service.queue import JobQueue
 from rangefuse.service.settings import Settings
 from rangefuse.storage import Store, open_store
@@ -108,6 +109,21 @@ def _wait_for_workers(cluster: Cluster, n: int, timeout: float = 60.0) -> None:
     while cluster.n_workers() < n:
         assert time.time() < deadline, f"{cluster.n_workers()} of {n} workers"
         time.sleep(0.2)
+
+
+def _engine_loaded() -> bool:
+    return "rangefuse.storage.units" in sys.modules and "numba" in sys.modules
+
+
+def test_the_cluster_processes_load_the_engine_before_the_first_unit(cluster):
+    """The scheduler unpickles each graph (importing what its units name) and a worker's
+    first unit loaded numba: both happen at start, not under the first job. The workers
+    get glibc's malloc thresholds for multi-megabyte buffers."""
+    _wait_for_workers(cluster, 2)
+    assert cluster.client.run_on_scheduler(_engine_loaded)
+    assert list(cluster.client.run(_engine_loaded).values()) == [True, True]
+    tunables = set(cluster.client.run(lambda: os.environ.get("GLIBC_TUNABLES")).values())
+    assert tunables == {TUNABLES}
 
 
 def test_in_process_local_and_external_clusters_give_the_same_bits(tmp_path, room, cluster):
@@ -207,7 +223,10 @@ def test_a_unit_that_keeps_killing_workers_fails_its_job_alone(tmp_path, room):
             assert np.array_equal(got.logodds, want.logodds, equal_nan=True)
 
 
-def test_cancel_stops_a_running_job_and_leaves_the_store_consistent(tmp_path):
+@pytest.mark.parametrize("where", ["here", "elsewhere"])
+def test_cancel_stops_a_running_job_and_leaves_the_store_consistent(tmp_path, where):
+    """Cancelled in the runner's process, or by another HTTP process of the service (only
+    the queue records it: the runner notices within poll_s)."""
     data = make_dataset("room", views=24)
     data_dir = tmp_path / "data"
     with Store.open(data_dir, create=True) as store, JobQueue(store.catalog.path) as queue:
@@ -220,7 +239,8 @@ def test_cancel_stops_a_running_job_and_leaves_the_store_consistent(tmp_path):
                 assert time.time() < deadline
                 time.sleep(0.05)
             time.sleep(1.0)
-            assert runner.cancel(job.id, queue).state == "cancelling"
+            jobs = runner if where == "here" else JobsElsewhere(queue)
+            assert jobs.cancel(job.id, queue).state == "cancelling"
             (final,) = _wait_for_jobs(queue, [job.id]).values()
             assert final.state == "cancelled" and final.finished_at is not None
             queued = queue.create_job(new_id(), "t", "nope", "integrate", {})

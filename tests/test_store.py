@@ -170,7 +170,7 @@ def test_store_errors(tmp_path, room):
         open_store(tmp_path / "s", grid, other)
     marker = tmp_path / "s" / "rangefuse-store.json"
     marker.write_text(json.dumps({"format": "rangefuse-store", "version": 99}))
-    with pytest.raises(StoreVersionError, match="version 99.*reads versions 1, 2"):
+    with pytest.raises(StoreVersionError, match="version 99.*reads versions 1, 2, 3"):
         open_store(tmp_path / "s")
 
 
@@ -233,7 +233,7 @@ def test_a_publish_cut_short_is_finished_at_the_next_open(tmp_path, room, monkey
 
 def test_a_version_1_store_killed_mid_group_is_upgraded_and_rebuilt(tmp_path, room):
     """Layout 1 wrote tiles in place after journaling them: its journaled tiles are rebuilt
-    from the archive, and the store is version 2 from then on."""
+    from the archive, and the store is version 3 from then on."""
     grid = _grid()
     expected = _memory(room.scans[:4], grid).to_dense()
     with open_store(tmp_path / "s", grid, PARAMS) as scene:
@@ -256,7 +256,7 @@ def test_a_version_1_store_killed_mid_group_is_upgraded_and_rebuilt(tmp_path, ro
         assert len(scene.catalog.journal(scene.scene_id)) == 0
         stored = pack_keys(scene.tiles.stored_keys())
         assert np.isin(stored, pack_keys(scene.tile_keys())).all()  # the unowned one is gone
-    assert json.loads(marker.read_text())["version"] == 2
+    assert json.loads(marker.read_text())["version"] == 3
 
 
 def test_an_interrupted_removal_is_finished_at_the_next_open(tmp_path, room):
@@ -320,7 +320,7 @@ def test_cli_store_commands(tmp_path, capsys):
     assert "0 new scans stored" in capsys.readouterr().out
     assert main(["info", str(store), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["scans"] == 4 and info["version"] == 2
+    assert info["scans"] == 4 and info["version"] == 3
     grid_path = tmp_path / "g.npz"
     assert (
         main(["extract", str(store), "--grid-out", str(grid_path), "-o", str(tmp_path / "m.ply")])
