@@ -9,7 +9,7 @@ thread takes every staged upload waiting when it is free and commits them as one
 (:meth:`storage.Store.commit_scans`: one round of fsyncs, one catalog transaction), queues
 one ``integrate`` job per scene, records the idempotency keys, and then answers them all.
 A request waits on its future without holding a thread of the pool. An upload that is not
-committed (a retry of a recorded key, an error) has its staged folder removed.
+committed (a retry of a recorded key, an error) has its staged file removed.
 
 Idempotency keys are checked here, in the committer's one thread: a retry that arrives in
 the same batch as its first use waits for the next batch, and then gets the first answer.

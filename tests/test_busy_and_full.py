@@ -219,9 +219,9 @@ def _remount(path: Path, size_bytes: int) -> None:
     subprocess.run(["mount", "-o", f"remount,size={size_kb}k", str(path)], check=True)
 
 
-def test_an_upload_cancelled_while_staging_leaves_no_folder_behind(tmp_path, room) -> None:
+def test_an_upload_cancelled_while_staging_leaves_nothing_behind(tmp_path, room) -> None:
     """The server stopping under a request (its task cancelled) before the request's thread
-    has staged the scan: once the thread has staged it, the staged folder is removed and
+    has staged the scan: once the thread has staged it, the staged file is removed and
     nothing is stored."""
     import asyncio
     import threading
