@@ -268,7 +268,7 @@ class JobRunner:
         self._compilations = _Compilations(self._wake.set)
         self._thread = threading.Thread(target=self._loop, name="rangefuse-jobs", daemon=True)
         self._state: JobQueue | None = None  # where the workers are recorded
-        self._workers_seen = 0
+        self._workers_seen: int | None = 0
         self._workers_asked = float("-inf")
 
     def _queue(self) -> JobQueue:
@@ -307,7 +307,12 @@ class JobRunner:
             changed = self._workers_seen != n
             self._workers_seen = n
         if changed and self._state is not None:
-            self._state.set_workers(n)
+            try:
+                self._state.set_workers(n)
+            except Exception as exc:  # a full disk: /healthz still answers; recorded later
+                with self._lock:
+                    self._workers_seen = None
+                log.debug("recording the workers failed: %s", exc)
         return n
 
     def cancel(self, job_id: str, queue: JobQueue) -> JobRow | None:
