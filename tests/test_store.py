@@ -376,10 +376,21 @@ def test_kill_at_random_instants_then_resume(tmp_path):
             proc = subprocess.Popen(
                 [*cmd, "--store", str(store)], stdout=subprocess.PIPE, text=True, env=env
             )
-            time.sleep(rng.uniform(0.1, 0.9) * full_s)
+            assert proc.stdout is not None
+            # after some of the acknowledgements still to come (none: anywhere, store
+            # creation included), then a random instant: a time alone mostly landed in the
+            # start-up (imports) or after the last scan once the stores got faster
+            lines, after = [], rng.randint(0, max(0, 9 - len(acked)))
+            while sum(line.startswith("stored ") for line in lines) < after:
+                line = proc.stdout.readline()
+                if not line:
+                    break
+                lines.append(line)
+            time.sleep(rng.uniform(0.1, 0.9) * full_s * (1.0 if after == 0 else 0.1))
             proc.send_signal(signal.SIGKILL)
             out, _ = proc.communicate()
-            acked |= {line.split()[1] for line in out.splitlines() if line.startswith("stored ")}
+            lines += out.splitlines()
+            acked |= {line.split()[1] for line in lines if line.startswith("stored ")}
             if not (store / "rangefuse-store.json").exists():  # killed while creating it
                 assert not acked
                 continue
