@@ -93,14 +93,15 @@ def _canonical_json(value: Any) -> bytes:
 
 def _checksum(range_m: np.ndarray, pose: np.ndarray, sensor: Any, noise: Any) -> str:
     h = hashlib.sha256()
-    for part in (
-        np.ascontiguousarray(range_m, "<f4"),  # hashed in place: no copy of the ranges
-        np.ascontiguousarray(pose, "<f8"),
-        _canonical_json(sensor),
-        _canonical_json(noise),
-    ):
-        h.update(memoryview(part).nbytes.to_bytes(8, "little"))
-        h.update(memoryview(part).cast("B"))
+    parts: list[memoryview] = [
+        np.ascontiguousarray(range_m, "<f4").data,  # hashed in place: no copy of the ranges
+        np.ascontiguousarray(pose, "<f8").data,
+        memoryview(_canonical_json(sensor)),
+        memoryview(_canonical_json(noise)),
+    ]
+    for part in parts:
+        h.update(part.nbytes.to_bytes(8, "little"))
+        h.update(part.cast("B"))
     return "sha256:" + h.hexdigest()
 
 

@@ -251,3 +251,21 @@ def test_publishing_several_staged_scans_at_once(tmp_path: Path) -> None:
     assert "t0" not in archive.ids()
     assert (tmp_path / "scene.zarr" / "scans" / "t1.zip").read_text() == "taken"
     assert not [p for p in (tmp_path / "scene.zarr" / "scans").iterdir() if p.name.startswith(".")]
+
+
+def test_the_checksum_is_the_documented_one() -> None:
+    """SHA-256 over the ranges, the pose, the sensor and noise JSON, each after its length:
+    what every stored entry carries, whatever the layout (strided input included)."""
+    scan = _scan("pinhole_z")
+    import hashlib
+
+    h = hashlib.sha256()
+    for part in (
+        np.ascontiguousarray(scan.range_m, "<f4").tobytes(),
+        np.ascontiguousarray(scan.T_W_S, "<f8").tobytes(),
+        json.dumps(scan.sensor.to_dict(), sort_keys=True).encode(),
+        b"null",
+    ):
+        h.update(len(part).to_bytes(8, "little"))
+        h.update(part)
+    assert scan_checksum(scan) == "sha256:" + h.hexdigest()
