@@ -198,6 +198,10 @@ class JobQueue:
 
     def claim_job(self, busy_scenes: Sequence[str]) -> JobRow | None:
         """The oldest queued job of a scene with no running job, now marked running."""
+        # the runner asks every poll_s: without a queued job it takes no write lock (a
+        # reader never waits on, nor holds up, the uploads' commits)
+        if not self._db.rows("SELECT 1 FROM jobs WHERE state='queued' LIMIT 1"):
+            return None
         with self._db.transaction():
             running = {
                 r[0]

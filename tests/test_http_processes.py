@@ -48,7 +48,13 @@ def _others(server) -> list[psutil.Process]:
 @contextmanager
 def _only_the_other_answers(server) -> Iterator[None]:
     """The first process stopped (SIGSTOP) meanwhile: a new connection can only be taken by
-    the other process."""
+    the other process. Only while no job runs: stopped in a transaction, the first process
+    would hold the catalog's write lock."""
+    with client_of(server) as client:
+        deadline = time.time() + 120
+        while any(j["state"] in ("queued", "running") for j in client.get("/v1/jobs").json()):
+            assert time.time() < deadline, "the jobs did not end"
+            time.sleep(0.1)
     first = psutil.Process(server.proc.pid)
     first.suspend()
     try:
