@@ -50,11 +50,6 @@ class HttpProcesses:
         self._started = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rangefuse-http", daemon=True)
 
-    @property
-    def pids(self) -> list[int]:
-        with self._lock:
-            return [p.pid for p in self._procs]
-
     def start(self) -> None:
         self._thread.start()
         self._started.wait()

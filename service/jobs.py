@@ -267,7 +267,7 @@ class JobRunner:
         self._wake = threading.Event()
         self._compilations = _Compilations(self._wake.set)
         self._thread = threading.Thread(target=self._loop, name="rangefuse-jobs", daemon=True)
-        self._state: JobQueue | None = None  # where the workers are recorded
+        self._runner_queue: JobQueue | None = None  # the runner's queue, opened by start()
         self._workers_seen: int | None = 0
         self._workers_asked = float("-inf")
 
@@ -278,10 +278,9 @@ class JobRunner:
     def start(self) -> None:
         """Put jobs a stopped service left running back in the queue, start or join the
         cluster, and begin claiming jobs."""
-        self._state = self._queue()
-        self._state.set_workers(0)  # none until the cluster's have joined
-        with self._queue() as queue:
-            resumed = queue.requeue_running()
+        self._runner_queue = self._queue()
+        self._runner_queue.set_workers(0)  # none until the cluster's have joined
+        resumed = self._runner_queue.requeue_running()
         if resumed:
             log.info("resuming %d interrupted jobs", resumed)
         load_kernels()  # numba's start, not under the first job while requests are served
@@ -306,9 +305,9 @@ class JobRunner:
         with self._lock:
             changed = self._workers_seen != n
             self._workers_seen = n
-        if changed and self._state is not None:
+        if changed and self._runner_queue is not None:
             try:
-                self._state.set_workers(n)
+                self._runner_queue.set_workers(n)
             except Exception as exc:  # a full disk: /healthz still answers; recorded later
                 with self._lock:
                     self._workers_seen = None
@@ -336,22 +335,23 @@ class JobRunner:
             thread.join(timeout=60)
         if self.cluster is not None:
             self.cluster.close()
-        if self._state is not None:
-            self._state.close()
+        if self._runner_queue is not None:
+            self._runner_queue.close()
 
     def _loop(self) -> None:
-        with self._queue() as queue:
-            while not self._stop.is_set():
-                try:
-                    self._show_compilations(queue)
-                    self._notice_cancellations(queue)
-                    self._record_workers()
-                    self._claim(queue)
-                except Exception as exc:  # the catalog cannot be written (a full disk): later
-                    log.warning("claiming jobs failed, trying again: %s", exc)
-                    self._stop.wait(max(1.0, self.settings.poll_s))
-                self._wake.wait(self.settings.poll_s)
-                self._wake.clear()
+        queue = self._runner_queue
+        assert queue is not None  # start() opened it
+        while not self._stop.is_set():
+            try:
+                self._show_compilations(queue)
+                self._notice_cancellations(queue)
+                self._record_workers()
+                self._claim(queue)
+            except Exception as exc:  # the catalog cannot be written (a full disk): later
+                log.warning("claiming jobs failed, trying again: %s", exc)
+                self._stop.wait(max(1.0, self.settings.poll_s))
+            self._wake.wait(self.settings.poll_s)
+            self._wake.clear()
 
     def _show_compilations(self, queue: JobQueue) -> None:
         """Record on each running job whether a worker compiles kernels for it now."""

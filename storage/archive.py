@@ -199,12 +199,13 @@ def _decode_range(meta: dict[str, Any], chunk: bytes | None) -> np.ndarray:
     return np.frombuffer(raw, "<f4").reshape(shape).astype(np.float32)
 
 
-def _member(path: Path, name: str) -> bytes:
-    """One file of an entry (``FileNotFoundError`` or ``KeyError`` when it has none)."""
+def _members(path: Path, names: Sequence[str]) -> dict[str, bytes]:
+    """The files ``names`` of an entry that it has (its zip opened once)."""
     if path.is_dir():
-        return (path / name).read_bytes()
+        return {n: (path / n).read_bytes() for n in names if (path / n).is_file()}
     with zipfile.ZipFile(path) as zf:
-        return zf.read(name)
+        present = set(zf.namelist())
+        return {n: zf.read(n) for n in names if n in present}
 
 
 _GROUP_LOCK = threading.Lock()
@@ -340,11 +341,6 @@ class ScanArchive:
             return
         os.unlink(entry.tmp)
 
-    def discard(self, staged: Sequence[StagedScan]) -> None:
-        """Remove staged scans that will not be published."""
-        for entry in staged:
-            entry.discard()
-
     # --- reading -----------------------------------------------------------------------------
     def _attrs(self, scan_id: str) -> dict[str, Any]:
         return self._group(scan_id)[1]
@@ -355,15 +351,13 @@ class ScanArchive:
         if path is None:
             raise ArchiveError(f"scan {scan_id!r} is not in the archive")
         try:
-            raw = _member(path, _GROUP_META)
-        except (FileNotFoundError, KeyError) as exc:
-            raise ArchiveError(
-                f"scan {scan_id!r}: archive entry is incomplete (no zarr.json)"
-            ) from exc
+            found = _members(path, [_GROUP_META])
         except (OSError, zipfile.BadZipFile) as exc:
             raise ArchiveError(f"scan {scan_id!r}: archive entry is unreadable ({exc})") from exc
+        if _GROUP_META not in found:
+            raise ArchiveError(f"scan {scan_id!r}: archive entry is incomplete (no zarr.json)")
         try:
-            attrs = json.loads(raw)["attributes"]
+            attrs = json.loads(found[_GROUP_META])["attributes"]
         except (ValueError, KeyError, TypeError) as exc:
             raise ArchiveError(f"scan {scan_id!r}: unreadable metadata ({exc})") from exc
         if not isinstance(attrs, dict):
@@ -399,11 +393,8 @@ class ScanArchive:
         """
         path, attrs = self._group(scan_id)
         try:
-            try:
-                chunk: bytes | None = _member(path, _RANGE_CHUNK)
-            except (FileNotFoundError, KeyError):
-                chunk = None
-            range_m = _decode_range(json.loads(_member(path, _RANGE_META)), chunk)
+            found = _members(path, [_RANGE_META, _RANGE_CHUNK])
+            range_m = _decode_range(json.loads(found[_RANGE_META]), found.get(_RANGE_CHUNK))
             pose = np.array(attrs["pose"], np.float64)
         except Exception as exc:
             raise ArchiveError(f"scan {scan_id!r}: archive entry is unreadable ({exc})") from exc
