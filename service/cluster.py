@@ -51,6 +51,11 @@ _POLL_S = 0.2
 #: that returns every worker's state; the Dask client's IO loop took 13 % of the API
 #: process's CPU under upload load when it was asked every 0.2 s).
 _CAPACITY_S = 1.0
+#: How long a runner that stops early (interrupted, or a unit failed) waits for its units
+#: already running to end: Dask's cancel does not stop a running task, and one that goes on
+#: would write its staged chunks under the scene's next job (a deletion removes the scene's
+#: folder, then a straggler recreated ``staging/``).
+_DRAIN_S = 60.0
 
 
 class UnitFailedError(RuntimeError):
@@ -124,9 +129,10 @@ class _Slots:
 class DaskRunner:
     """Runs units on a Dask cluster (see the module's note).
 
-    ``interrupted()`` is asked while units run; when it says yes, the runner cancels what
-    has not finished and raises :class:`RunInterruptedError` (what the units staged is dropped by
-    the next run: nothing was committed).
+    ``interrupted()`` is asked while units run; when it says yes, the runner submits no
+    more, waits for the units already running to end (:meth:`_drain`) and raises
+    :class:`RunInterruptedError` (what the units staged is dropped by the next run: nothing
+    was committed).
     """
 
     def __init__(
@@ -176,9 +182,19 @@ class DaskRunner:
             return [results[i] for i in range(len(units))]
         finally:
             if running:
-                self.client.cancel(list(running))
+                self._drain(list(running))
                 for _ in running:
                     self.slots.release()
+
+    def _drain(self, futures: list[Future]) -> None:
+        """Wait (at most :data:`_DRAIN_S`) for the units still running to end, then cancel
+        what has not: the job that stops records its end only once nothing of it runs."""
+        try:
+            wait(futures, timeout=_DRAIN_S)
+        except TimeoutError:
+            left = [f for f in futures if not f.done()]
+            log.warning("%d units still ran %.0f s after their job stopped", len(left), _DRAIN_S)
+        self.client.cancel([f for f in futures if not f.done()])
 
     @staticmethod
     def _first_done(futures: list[Future]) -> set[Future]:

@@ -24,7 +24,7 @@ import pytest
 from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
 from rangefuse.engine.synth import make_dataset
 from rangefuse.service._malloc import TUNABLES
-from rangefuse.service.cluster import Cluster
+from rangefuse.service.cluster import Cluster, RunInterruptedError
 from rangefuse.service.jobs import JobRunner, JobsElsewhere, new_id
 from rangefuse.service.queue import JobQueue
 from rangefuse.service.settings import Settings
@@ -255,6 +255,31 @@ def test_cancel_stops_a_running_job_and_leaves_the_store_consistent(tmp_path, wh
         expected.add_many(data.scans)
         got, want = scene.to_dense(), expected.to_dense()
         assert np.array_equal(got.logodds, want.logodds, equal_nan=True)
+
+
+def test_an_interrupted_runner_returns_once_its_running_units_have_ended(tmp_path, cluster):
+    """Dask's cancel does not stop a task that runs: the runner waits for its running units
+    to end, so that nothing of a stopped job writes under the scene's next job (a deletion
+    found ``staging/`` recreated by a straggler after it removed the scene's folder)."""
+    _wait_for_workers(cluster, 2)
+    marks = tmp_path / "ended"
+    marks.mkdir()
+
+    def unit(i: int) -> int:
+        import time as t
+
+        t.sleep(2.0)
+        (marks / str(i)).write_text("ended")
+        return i
+
+    stop = threading.Event()
+    threading.Timer(0.5, stop.set).start()
+    with pytest.raises(RunInterruptedError):
+        cluster.runner(stop.is_set).map(unit, list(range(8)))
+    ended = sorted(p.name for p in marks.iterdir())
+    assert ended, "the runner returned while its units still ran"
+    time.sleep(2.5)
+    assert sorted(p.name for p in marks.iterdir()) == ended  # and none began after
 
 
 def _descendants(pid: int) -> list[int]:
