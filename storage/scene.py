@@ -35,6 +35,7 @@ from rangefuse.engine import DenseGrid, FusionParams, GridSpec, Scan, ScanNotFou
 from rangefuse.engine.grid import KEY_LIMIT, pack_keys, unpack_keys
 from rangefuse.engine.meshing import HALO_TILES, Mesh
 from rangefuse.engine.planner import Plan, Sphere, View, scans_near, tiles_near
+from rangefuse.engine.sensors import sensor_from_dict
 from rangefuse.engine.volume import dense_logodds
 
 from .archive import ScanArchive
@@ -65,10 +66,12 @@ from .units import (
 )
 from .zarr_tiles import ZarrTiles
 
-__all__ = ["GROUP_SCANS", "Scene", "SceneReport", "open_scene", "open_store"]
+__all__ = ["GROUP_PIXELS", "GROUP_SCANS", "Scene", "SceneReport", "open_scene", "open_store"]
 
-#: Scans integrated between two checkpoints.
-GROUP_SCANS = 8
+#: Most scans integrated between two checkpoints (a group; docs/storage.md, "Groups").
+GROUP_SCANS = 64
+#: Most pixels in a group's scans: each unit of a group holds the scans it fuses.
+GROUP_PIXELS = 2**23
 #: The halo of the plans (engine.planner): the scene keeps tile meshes up to date.
 MESH_HALO = 1
 #: Fewest tiles a meshing unit takes (each loads the scans near its tiles).
@@ -207,18 +210,43 @@ class Scene:
     def integrate_pending(
         self, progress: Progress | None = None, group_scans: int = GROUP_SCANS
     ) -> SceneReport:
-        """Fuse every ``stored`` scan, in groups of scans with a checkpoint after each.
+        """Fuse every ``stored`` scan, in groups of scans (:meth:`_groups`, at most
+        ``group_scans`` each) with a checkpoint after each.
 
         The result is bit-identical to fusing all the scene's scans at once, in any order.
         """
-        pending = [r.id for r in self.scan_rows(("stored",))]
+        pending = self.scan_rows(("stored",))
         report = SceneReport()
-        for start in range(0, len(pending), group_scans):
-            group = pending[start : start + group_scans]
+        done = 0
+        for group in self._groups(pending, group_scans):
             self._integrate_group(group, report)
+            done += len(group)
             if progress is not None:
-                progress(start + len(group), len(pending))
+                progress(done, len(pending))
         return report
+
+    def _groups(self, pending: Sequence[ScanRow], most: int) -> list[list[str]]:
+        """Consecutive scans in groups: a group takes the next scan while it has fewer than
+        ``most`` scans and :data:`GROUP_PIXELS` pixels, and the scan's sphere meets the
+        sphere of the group's first scan. A tile is read, staged and published once per
+        group however many of its scans see it: scans that share tiles (a drive's
+        consecutive scans, the views of one room) share those costs."""
+        groups: list[list[str]] = []
+        first, pixels = None, 0
+        for row in pending:
+            h, w = sensor_from_dict(self.archive.placement(row.id)["sensor"]).shape
+            if (
+                first is not None
+                and len(groups[-1]) < most
+                and pixels + h * w <= GROUP_PIXELS
+                and math.dist(first.origin, row.origin) <= first.reach_m + row.reach_m
+            ):
+                groups[-1].append(row.id)
+                pixels += h * w
+            else:
+                groups.append([row.id])
+                first, pixels = row, h * w
+        return groups
 
     def _integrate_group(self, new_ids: list[str], report: SceneReport) -> None:
         work = self._group_work(new_ids)

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 import pytest
-from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
+from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Scan, Volume
 from rangefuse.engine.grid import pack_keys
 from rangefuse.engine.synth import make_dataset
 from rangefuse.service.cli import main
@@ -26,6 +26,7 @@ from rangefuse.storage import (
     read_grid,
     write_dataset,
 )
+from rangefuse.storage import scene as scene_module
 from rangefuse.storage.staging import Staging
 from rangefuse.storage.store import DEFAULT_SCENE
 
@@ -120,6 +121,33 @@ def test_adding_later_equals_all_at_once(tmp_path, room):
             scene.integrate_pending(group_scans=1)
         assert scene.catalog.n_scans(scene.scene_id, ("stored",)) == 0
         _same_dense(scene.to_dense(), expected)
+
+
+def test_groups_take_scans_that_share_tiles_within_their_budgets(tmp_path, room, monkeypatch):
+    """A checkpoint per group (one progress call each): a group takes the next scan while
+    it has fewer than ``group_scans`` scans, at most GROUP_PIXELS pixels, and the scan's
+    sphere meets the group's first scan's; the bits are those of fusing all at once."""
+    far = np.eye(4)
+    far[0, 3] = 1000.0  # a kilometre away: its sphere meets none of the others'
+    moved = [(f"{scan_id}-far", Scan(s.range_m, far @ s.T_W_S, s.sensor, s.noise))
+             for scan_id, s in room.scans[:2]]  # fmt: skip
+    scans = [*room.scans[:3], moved[0], room.scans[3], *room.scans[4:], moved[1]]
+    expected = _memory(scans, _grid()).to_dense()
+
+    def checkpoints(path, **kwargs) -> list[int]:
+        calls: list[int] = []
+        with open_store(path, _grid(), PARAMS) as scene:
+            for item in scans:
+                scene.store_scan(*item)
+            scene.integrate_pending(progress=lambda done, _: calls.append(done), **kwargs)
+            _same_dense(scene.to_dense(), expected)
+        return calls
+
+    assert checkpoints(tmp_path / "a") == [3, 4, 7, 8]  # far, near again, far
+    assert checkpoints(tmp_path / "b", group_scans=2) == [2, 3, 4, 6, 7, 8]
+    h, w = room.scans[0][1].range_m.shape
+    monkeypatch.setattr(scene_module, "GROUP_PIXELS", 2 * h * w)
+    assert checkpoints(tmp_path / "c") == [2, 3, 4, 6, 7, 8]
 
 
 def test_remove_then_re_add_is_exact(tmp_path, room):
