@@ -53,3 +53,15 @@ def test_vs_open3d_benchmark_smoke():
     median = float(summary.split("median ratio ")[1].split()[0])
     assert abs(median - sum(ratios) / 2) <= 0.011  # of two rounds: their mean, rounded
     assert "over 2 round(s)" in summary
+
+
+def test_file_creation_benchmark_smoke(tmp_path):
+    out = _run("file_creation.py", str(tmp_path), "--files", "30")
+    (row,) = [line.split() for line in out.splitlines() if line.startswith(str(tmp_path))]
+    assert int(row[1]) == 30 and float(row[2]) > 0
+    assert list(tmp_path.iterdir()) == []  # its files are removed
+    bad = subprocess.run(
+        [sys.executable, str(BENCH / "file_creation.py"), str(tmp_path / "nope")],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert bad.returncode != 0 and "not a folder" in bad.stderr
