@@ -63,7 +63,7 @@ def main() -> None:
     print(f"{'folder':<30} {'files':>7} {'ms/file':>8} {'sys ms/file':>12} {'files/s':>8}")
     for folder in args.folders:
         per_file, sys_per_file = measure(folder, args.files)
-        print(f"{str(folder):<30} {args.files:>7} {1000 * per_file:>8.3f} "
+        print(f"{folder!s:<30} {args.files:>7} {1000 * per_file:>8.3f} "
               f"{1000 * sys_per_file:>12.3f} {1 / per_file:>8.0f}")  # fmt: skip
 
 
