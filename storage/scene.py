@@ -25,7 +25,7 @@ import math
 import os
 import shutil
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -225,28 +225,39 @@ class Scene:
                 progress(done, len(pending))
         return report
 
-    def _groups(self, pending: Sequence[ScanRow], most: int) -> list[list[str]]:
+    def _groups(self, pending: Sequence[ScanRow], most: int) -> Iterator[list[str]]:
         """Consecutive scans in groups: a group takes the next scan while it has fewer than
         ``most`` scans and :data:`GROUP_PIXELS` pixels, and the scan's sphere meets the
         sphere of the group's first scan. A tile is read, staged and published once per
         group however many of its scans see it: scans that share tiles (a drive's
-        consecutive scans, the views of one room) share those costs."""
-        groups: list[list[str]] = []
-        first, pixels = None, 0
+        consecutive scans, the views of one room) share those costs. An unreadable archive
+        entry is a group of its own: its fusion fails, not the groups before it."""
+        group: list[str] = []
+        first: ScanRow | None = None
+        pixels = 0
         for row in pending:
-            h, w = sensor_from_dict(self.archive.placement(row.id)["sensor"]).shape
-            if (
-                first is not None
-                and len(groups[-1]) < most
-                and pixels + h * w <= GROUP_PIXELS
-                and math.dist(first.origin, row.origin) <= first.reach_m + row.reach_m
+            n = self._pixels(row.id)
+            if first is not None and (
+                len(group) >= most
+                or pixels + n > GROUP_PIXELS
+                or math.dist(first.origin, row.origin) > first.reach_m + row.reach_m
             ):
-                groups[-1].append(row.id)
-                pixels += h * w
-            else:
-                groups.append([row.id])
-                first, pixels = row, h * w
-        return groups
+                yield group
+                group, first, pixels = [], None, 0
+            first = first or row
+            group.append(row.id)
+            pixels += n
+        if group:
+            yield group
+
+    def _pixels(self, scan_id: str) -> int:
+        """Pixels of an archived scan, from its metadata; an unreadable entry counts as
+        more than a group holds (a group of its own, whose fusion says what is wrong)."""
+        try:
+            h, w = sensor_from_dict(self.archive.placement(scan_id)["sensor"]).shape
+        except (ValueError, TypeError, KeyError):  # ArchiveError, InvalidInputError
+            return GROUP_PIXELS + 1
+        return h * w
 
     def _integrate_group(self, new_ids: list[str], report: SceneReport) -> None:
         work = self._group_work(new_ids)

@@ -27,6 +27,7 @@ from rangefuse.storage import (
     write_dataset,
 )
 from rangefuse.storage import scene as scene_module
+from rangefuse.storage.archive import ArchiveError
 from rangefuse.storage.staging import Staging
 from rangefuse.storage.store import DEFAULT_SCENE
 
@@ -148,6 +149,15 @@ def test_groups_take_scans_that_share_tiles_within_their_budgets(tmp_path, room,
     h, w = room.scans[0][1].range_m.shape
     monkeypatch.setattr(scene_module, "GROUP_PIXELS", 2 * h * w)
     assert checkpoints(tmp_path / "c") == [2, 3, 4, 6, 7, 8]
+    # an unreadable archive entry fails its own group, not the groups before it
+    with open_store(tmp_path / "d", _grid(), PARAMS) as scene:
+        for item in room.scans[:3]:
+            scene.store_scan(*item)
+        lost = room.scans[2][0]
+        scene.archive._entry(lost).unlink()
+        with pytest.raises(ArchiveError, match=lost):
+            scene.integrate_pending(group_scans=2)
+        assert [r.id for r in scene.scan_rows(("fused",))] == [i for i, _ in room.scans[:2]]
 
 
 def test_remove_then_re_add_is_exact(tmp_path, room):
