@@ -207,8 +207,8 @@ def main() -> None:
     parser.add_argument("--tile-size", type=int, default=16)
     parser.add_argument("--cache-mb", type=float, default=512.0)
     parser.add_argument(
-        "--group-scans", type=int, help="scans per checkpoint in the store runs (default: the "
-        "scene's GROUP_SCANS)"
+        "--group-scans", type=int, help="most scans per checkpoint in the store runs "
+        "(default: storage.groups.GROUP_SCANS, with its other bounds)"
     )  # fmt: skip
     parser.add_argument("--tmp", default=None, help="folder for the stores (default: system)")
     parser.add_argument("--child", help=argparse.SUPPRESS)

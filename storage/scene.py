@@ -25,7 +25,7 @@ import math
 import os
 import shutil
 import uuid
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,11 +35,11 @@ from rangefuse.engine import DenseGrid, FusionParams, GridSpec, Scan, ScanNotFou
 from rangefuse.engine.grid import KEY_LIMIT, pack_keys, unpack_keys
 from rangefuse.engine.meshing import HALO_TILES, Mesh
 from rangefuse.engine.planner import Plan, Sphere, View, scans_near, tiles_near
-from rangefuse.engine.sensors import sensor_from_dict
 from rangefuse.engine.volume import dense_logodds
 
 from .archive import ScanArchive
 from .catalog import ScanRow
+from .groups import GROUP_SCANS, scan_groups
 from .mesh_cache import MeshCache
 from .staging import Staging
 from .store import (
@@ -66,12 +66,8 @@ from .units import (
 )
 from .zarr_tiles import ZarrTiles
 
-__all__ = ["GROUP_PIXELS", "GROUP_SCANS", "Scene", "SceneReport", "open_scene", "open_store"]
+__all__ = ["Scene", "SceneReport", "open_scene", "open_store"]
 
-#: Most scans integrated between two checkpoints (a group; docs/storage.md, "Groups").
-GROUP_SCANS = 64
-#: Most pixels in a group's scans: each unit of a group holds the scans it fuses.
-GROUP_PIXELS = 2**23
 #: The halo of the plans (engine.planner): the scene keeps tile meshes up to date.
 MESH_HALO = 1
 #: Fewest tiles a meshing unit takes (each loads the scans near its tiles).
@@ -210,54 +206,21 @@ class Scene:
     def integrate_pending(
         self, progress: Progress | None = None, group_scans: int = GROUP_SCANS
     ) -> SceneReport:
-        """Fuse every ``stored`` scan, in groups of scans (:meth:`_groups`, at most
-        ``group_scans`` each) with a checkpoint after each.
+        """Fuse every ``stored`` scan, in groups of scans that share tiles
+        (:func:`~storage.groups.scan_groups`, at most ``group_scans`` each) with a
+        checkpoint after each.
 
         The result is bit-identical to fusing all the scene's scans at once, in any order.
         """
         pending = self.scan_rows(("stored",))
         report = SceneReport()
         done = 0
-        for group in self._groups(pending, group_scans):
+        for group in scan_groups(pending, self.archive, group_scans):
             self._integrate_group(group, report)
             done += len(group)
             if progress is not None:
                 progress(done, len(pending))
         return report
-
-    def _groups(self, pending: Sequence[ScanRow], most: int) -> Iterator[list[str]]:
-        """Consecutive scans in groups: a group takes the next scan while it has fewer than
-        ``most`` scans and :data:`GROUP_PIXELS` pixels, and the scan's sphere meets the
-        sphere of the group's first scan. A tile is read, staged and published once per
-        group however many of its scans see it: scans that share tiles (a drive's
-        consecutive scans, the views of one room) share those costs. An unreadable archive
-        entry is a group of its own: its fusion fails, not the groups before it."""
-        group: list[str] = []
-        first: ScanRow | None = None
-        pixels = 0
-        for row in pending:
-            n = self._pixels(row.id)
-            if first is not None and (
-                len(group) >= most
-                or pixels + n > GROUP_PIXELS
-                or math.dist(first.origin, row.origin) > first.reach_m + row.reach_m
-            ):
-                yield group
-                group, first, pixels = [], None, 0
-            first = first or row
-            group.append(row.id)
-            pixels += n
-        if group:
-            yield group
-
-    def _pixels(self, scan_id: str) -> int:
-        """Pixels of an archived scan, from its metadata; an unreadable entry counts as
-        more than a group holds (a group of its own, whose fusion says what is wrong)."""
-        try:
-            h, w = sensor_from_dict(self.archive.placement(scan_id)["sensor"]).shape
-        except (ValueError, TypeError, KeyError):  # ArchiveError, InvalidInputError
-            return GROUP_PIXELS + 1
-        return h * w
 
     def _integrate_group(self, new_ids: list[str], report: SceneReport) -> None:
         work = self._group_work(new_ids)

@@ -22,11 +22,11 @@ from rangefuse.storage import (
     StoreError,
     StoreLockedError,
     StoreVersionError,
+    groups,
     open_store,
     read_grid,
     write_dataset,
 )
-from rangefuse.storage import scene as scene_module
 from rangefuse.storage.archive import ArchiveError
 from rangefuse.storage.staging import Staging
 from rangefuse.storage.store import DEFAULT_SCENE
@@ -147,7 +147,7 @@ def test_groups_take_scans_that_share_tiles_within_their_budgets(tmp_path, room,
     assert checkpoints(tmp_path / "a") == [3, 4, 7, 8]  # far, near again, far
     assert checkpoints(tmp_path / "b", group_scans=2) == [2, 3, 4, 6, 7, 8]
     h, w = room.scans[0][1].range_m.shape
-    monkeypatch.setattr(scene_module, "GROUP_PIXELS", 2 * h * w)
+    monkeypatch.setattr(groups, "GROUP_PIXELS", 2 * h * w)
     assert checkpoints(tmp_path / "c") == [2, 3, 4, 6, 7, 8]
     # an unreadable archive entry fails its own group, not the groups before it
     with open_store(tmp_path / "d", _grid(), PARAMS) as scene:

@@ -1,0 +1,60 @@
+"""Groups of stored scans, fused between two checkpoints (docs/storage.md, "Groups").
+
+A tile is read, staged and published once per group however many of the group's scans see
+it, so scans that share tiles (a drive's consecutive scans, the views of one room) share
+those costs. A group's size is bounded by a count, by the pixels its units hold, and by
+the scans' reach: a scan whose sphere does not meet the group's first one starts a new group.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Sequence
+
+from rangefuse.engine.sensors import sensor_from_dict
+
+from .archive import ScanArchive
+from .catalog import ScanRow
+
+__all__ = ["GROUP_PIXELS", "GROUP_SCANS", "scan_groups"]
+
+#: Most scans integrated between two checkpoints.
+GROUP_SCANS = 64
+#: Most pixels in a group's scans: each unit of a group holds the scans it fuses.
+GROUP_PIXELS = 2**23
+
+
+def scan_groups(
+    pending: Sequence[ScanRow], archive: ScanArchive, most: int = GROUP_SCANS
+) -> Iterator[list[str]]:
+    """The ids of ``pending`` (in order) in groups: a group takes the next scan while it has
+    fewer than ``most`` scans and :data:`GROUP_PIXELS` pixels, and the scan's sphere meets
+    the sphere of the group's first scan. An unreadable archive entry is a group of its
+    own: its fusion fails, not the groups before it."""
+    group: list[str] = []
+    first: ScanRow | None = None
+    pixels = 0
+    for row in pending:
+        n = _pixels(archive, row.id)
+        if first is not None and (
+            len(group) >= most
+            or pixels + n > GROUP_PIXELS
+            or math.dist(first.origin, row.origin) > first.reach_m + row.reach_m
+        ):
+            yield group
+            group, first, pixels = [], None, 0
+        first = first or row
+        group.append(row.id)
+        pixels += n
+    if group:
+        yield group
+
+
+def _pixels(archive: ScanArchive, scan_id: str) -> int:
+    """Pixels of an archived scan, from its metadata; an unreadable entry counts as more
+    than a group holds (a group of its own, whose fusion says what is wrong)."""
+    try:
+        h, w = sensor_from_dict(archive.placement(scan_id)["sensor"]).shape
+    except (ValueError, TypeError, KeyError):  # ArchiveError, InvalidInputError
+        return GROUP_PIXELS + 1
+    return h * w
