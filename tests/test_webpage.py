@@ -10,6 +10,7 @@ import io
 import json
 import os
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -173,6 +174,20 @@ def test_workflow_in_the_browser(server, dataset, page):
     # the up axis is remembered per scene
     page.select_option("#up-axis", "y")
     assert page.evaluate(f"localStorage.getItem('rangefuse-up-{scene_id}')") == "y"
+
+    # a reconstruction queued elsewhere and done between two of the page's polls (the page
+    # never saw it queued or running) is drawn: its polls of the jobs fail meanwhile
+    page.route("**/v1/jobs?limit=30", lambda route: route.abort())
+    page.evaluate("delete document.querySelector('#status').dataset.faces")
+    with client_of(server) as c:
+        again = c.post(f"/v1/scenes/{scene_id}/reconstructions", json={}).json()["job"]["id"]
+        deadline = time.monotonic() + 120
+        while c.get(f"/v1/jobs/{again}").json()["state"] != "done":
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+    page.unroute("**/v1/jobs?limit=30")
+    page.wait_for_function("document.querySelector('#status').dataset.faces", timeout=30_000)
+    assert int(page.get_attribute("#status", "data-faces")) == faces
     page.select_option("#up-axis", "z")
 
     # a slice through the middle of the object, with its legend

@@ -22,6 +22,7 @@ if (fragment.has("token") || params.has("token")) {  // ?token= is not read, onl
 const state = {
   scenes: [], jobs: [], selected: params.get("scene"), scene: null,
   meshEtag: null, placements: [], seen: new Map(), schema: null,
+  jobsLoaded: false,  // once the jobs were read: a job new since then started after
 };
 
 function setStatus(text, error = false) {
@@ -409,9 +410,10 @@ async function cancel(id) {
   catch (e) { setStatus("cannot cancel: " + e.message, true); }
 }
 
-let refreshing = false;
+let refreshing = false, refreshAgain = false;
 async function refresh() {
-  if (!token || refreshing) return;
+  if (!token) return;
+  if (refreshing) { refreshAgain = true; return; }  // asked mid-refresh: once more after it
   refreshing = true;
   try {
     state.scenes = await json("/v1/scenes");
@@ -422,7 +424,10 @@ async function refresh() {
     for (const j of jobs) {
       const before = state.jobs.find(x => x.id === j.id);
       if (j.state === "running" && !state.seen.has(j.id)) state.seen.set(j.id, { t0: now, p0: j.progress });
-      if (before && !FINISHED.has(before.state) && FINISHED.has(j.state) && j.scene_id === state.selected) {
+      // ended since the last poll; a job not listed then that has ended already was queued
+      // and done between two polls (a reconstruction of a small scene takes a second)
+      const ended = FINISHED.has(j.state) && (before ? !FINISHED.has(before.state) : state.jobsLoaded);
+      if (ended && j.scene_id === state.selected) {
         sceneChanged = true;
         if (j.kind === "reconstruct" && j.state === "done") meshChanged = true;
         if (j.state === "failed") setStatus(`${describeJob(j)} failed: ${j.error}`, true);
@@ -430,6 +435,7 @@ async function refresh() {
       }
     }
     state.jobs = jobs;
+    state.jobsLoaded = true;
     renderJobs();
     if (state.selected && !state.scenes.some(s => s.id === state.selected)) {
       state.selected = null; $("scene-panel").hidden = true; viewer.clear();
@@ -438,7 +444,10 @@ async function refresh() {
     if (meshChanged) await loadMesh(!viewer.mesh);
   } catch (e) {
     setStatus(e.message, true);
-  } finally { refreshing = false; }
+  } finally {
+    refreshing = false;
+    if (refreshAgain) { refreshAgain = false; refresh(); }
+  }
 }
 
 // --- the viewer's controls ----------------------------------------------------------------
