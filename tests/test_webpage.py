@@ -78,6 +78,22 @@ def page(browser):
             page.close()
 
 
+def _a_job_done_between_two_polls_is_drawn(page, server, scene_id: str, faces: int) -> None:
+    """A reconstruction queued elsewhere and done between two of the page's polls (the page
+    never saw it queued or running) is drawn: the page's polls of the jobs fail meanwhile."""
+    page.route("**/v1/jobs?limit=30", lambda route: route.abort())
+    page.evaluate("delete document.querySelector('#status').dataset.faces")
+    with client_of(server) as c:
+        again = c.post(f"/v1/scenes/{scene_id}/reconstructions", json={}).json()["job"]["id"]
+        deadline = time.monotonic() + 120
+        while c.get(f"/v1/jobs/{again}").json()["state"] != "done":
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+    page.unroute("**/v1/jobs?limit=30")
+    page.wait_for_function("document.querySelector('#status').dataset.faces", timeout=30_000)
+    assert int(page.get_attribute("#status", "data-faces")) == faces
+
+
 def _create_scene_from_the_form(page, bounds) -> None:
     """The form is rendered from /openapi.json, with each parameter's help and default."""
     page.click("#new-scene")
@@ -174,20 +190,7 @@ def test_workflow_in_the_browser(server, dataset, page):
     # the up axis is remembered per scene
     page.select_option("#up-axis", "y")
     assert page.evaluate(f"localStorage.getItem('rangefuse-up-{scene_id}')") == "y"
-
-    # a reconstruction queued elsewhere and done between two of the page's polls (the page
-    # never saw it queued or running) is drawn: its polls of the jobs fail meanwhile
-    page.route("**/v1/jobs?limit=30", lambda route: route.abort())
-    page.evaluate("delete document.querySelector('#status').dataset.faces")
-    with client_of(server) as c:
-        again = c.post(f"/v1/scenes/{scene_id}/reconstructions", json={}).json()["job"]["id"]
-        deadline = time.monotonic() + 120
-        while c.get(f"/v1/jobs/{again}").json()["state"] != "done":
-            assert time.monotonic() < deadline
-            time.sleep(0.2)
-    page.unroute("**/v1/jobs?limit=30")
-    page.wait_for_function("document.querySelector('#status').dataset.faces", timeout=30_000)
-    assert int(page.get_attribute("#status", "data-faces")) == faces
+    _a_job_done_between_two_polls_is_drawn(page, server, scene_id, faces)
     page.select_option("#up-axis", "z")
 
     # a slice through the middle of the object, with its legend
