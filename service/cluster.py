@@ -13,6 +13,7 @@ runner can be interrupted (a cancelled job, a stopping service).
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import json
@@ -189,12 +190,12 @@ class DaskRunner:
     def _drain(self, futures: list[Future]) -> None:
         """Wait (at most :data:`_DRAIN_S`) for the units still running to end, then cancel
         what has not: the job that stops records its end only once nothing of it runs."""
-        try:
+        with contextlib.suppress(TimeoutError):
             wait(futures, timeout=_DRAIN_S)
-        except TimeoutError:
-            left = [f for f in futures if not f.done()]
+        left = [f for f in futures if not f.done()]
+        if left:
             log.warning("%d units still ran %.0f s after their job stopped", len(left), _DRAIN_S)
-        self.client.cancel([f for f in futures if not f.done()])
+            self.client.cancel(left)
 
     @staticmethod
     def _first_done(futures: list[Future]) -> set[Future]:

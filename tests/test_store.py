@@ -154,7 +154,7 @@ def test_groups_take_scans_that_share_tiles_within_their_budgets(tmp_path, room,
         for item in room.scans[:3]:
             scene.store_scan(*item)
         lost = room.scans[2][0]
-        scene.archive._entry(lost).unlink()
+        scene.archive.delete(lost)
         with pytest.raises(ArchiveError, match=lost):
             scene.integrate_pending(group_scans=2)
         assert [r.id for r in scene.scan_rows(("fused",))] == [i for i, _ in room.scans[:2]]

@@ -10,14 +10,13 @@ import io
 import json
 import os
 import shutil
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 
-from tests.test_service import client_of, serving
+from tests.test_service import _wait, client_of, serving
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 SHOTS = Path(__file__).resolve().parents[1] / "build" / "screenshots"
@@ -85,10 +84,7 @@ def _a_job_done_between_two_polls_is_drawn(page, server, scene_id: str, faces: i
     page.evaluate("delete document.querySelector('#status').dataset.faces")
     with client_of(server) as c:
         again = c.post(f"/v1/scenes/{scene_id}/reconstructions", json={}).json()["job"]["id"]
-        deadline = time.monotonic() + 120
-        while c.get(f"/v1/jobs/{again}").json()["state"] != "done":
-            assert time.monotonic() < deadline
-            time.sleep(0.2)
+        assert _wait(c, again)["state"] == "done"
     page.unroute("**/v1/jobs?limit=30")
     page.wait_for_function("document.querySelector('#status').dataset.faces", timeout=30_000)
     assert int(page.get_attribute("#status", "data-faces")) == faces
