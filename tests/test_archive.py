@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -176,9 +177,15 @@ def test_temporaries_removed_and_ignored(tmp_path: Path) -> None:
 
 def test_failed_rename_leaves_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     archive = ScanArchive(tmp_path / "g")
+    link = os.link
 
-    def refuse(src: object, dst: object) -> None:
-        raise OSError("disk on fire")
+    def refuse(src: str | Path, dst: str | Path) -> None:
+        # Only the entry's own link fails: zarr-python creates the group with os.link too
+        # (its exclusive writes), and failing those made the group's creation fail instead,
+        # with its concurrent writes still in flight when the folder was listed.
+        if str(dst).endswith(archive_module.ENTRY_SUFFIX):
+            raise OSError("disk on fire")
+        link(src, dst)
 
     monkeypatch.setattr(archive_module.os, "link", refuse)
     with pytest.raises(OSError, match="disk on fire"):
