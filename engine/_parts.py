@@ -10,10 +10,20 @@ what the voxel loop gives it: the part tests are conservative (:mod:`engine.clas
 
 from __future__ import annotations
 
+import math
+
 from numba import njit
 
-from ._sampling import prefetch_quad, quad_index
-from ._sensor_kernels import SPHERICAL, project_point, spherical_column, spherical_in_column
+from ._sampling import prefetch_quad, quad_columns, quad_index
+from ._sensor_kernels import (
+    ROW_OUTSIDE,
+    ROW_UNSURE,
+    SPHERICAL,
+    project_point,
+    row_of_tangent,
+    spherical_column,
+    spherical_in_column,
+)
 from .classify import _classify_part, _classify_tile
 
 
@@ -45,24 +55,90 @@ def _see_part(
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def _fuse_spherical(
+    linear, params, table, tans, flat_bounds, rng, tile, index, cu, q0, rho, z, row, nqu,
+    free_value, at, band_u, band_v, band_d, count, queued,
+):  # fmt: skip
+    # passes 1 and 2 at once for the voxel tile[index] of a spherical sensor, its column cu,
+    # its distance from the axis rho and its height z in the sensor frame known (q0: the
+    # column's quad in row 0, -1 outside the image). The quad row comes from the tangent of
+    # the elevation (row_of_tangent), so that only a voxel in the band, or within a margin
+    # of a row's edge, takes the elevation's atan2. Returns count, queued and the row.
+    if q0 < 0:
+        return count, queued, row
+    r = row_of_tangent(tans, z / rho, row)
+    if r == ROW_OUTSIDE:
+        return count, queued, row
+    if r == ROW_UNSURE:
+        u, v, d = spherical_in_column(params, table, cu, rho, z)
+        q = quad_index(SPHERICAL, params, u, v)
+        if q < 0:
+            return count, queued, row
+    else:
+        row = r
+        q = q0 + r * nqu
+        d = math.sqrt(rho * rho + z * z)  # as spherical_in_column
+    if linear and d < flat_bounds[2 * q]:
+        tile[index] += free_value
+        count += 1
+    elif d <= flat_bounds[2 * q + 1]:
+        u, v, d = spherical_in_column(params, table, cu, rho, z)
+        at[queued] = index
+        band_u[queued] = u
+        band_v[queued] = v
+        band_d[queued] = d
+        queued += 1
+        prefetch_quad(SPHERICAL, params, rng, u, v)
+    return count, queued, row
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def _fuse_block(
-    kind, linear, tile, corner, i, j, k, S, T, h, M, c, params, table, flat_bounds, rng,
+    kind, linear, tile, corner, i, j, k, S, T, h, M, c, params, table, tans, flat_bounds, rng,
     free_value, at, band_u, band_v, band_d, slab_y, slab_z, slab_u, slab_v, slab_d, slab_q,
     count, queued,
 ):  # fmt: skip
     # passes 1 and 2 (see _integrate_kernel) over the block of S^3 voxels whose first voxel is
     # ``tile[corner]``, voxel (i, j, k) of the grid; returns the new count and queue length
+    # (``tans``: the sensor's row_tangents, empty if not spherical)
     TT = T * T
     for b in range(S):
         y = ((j + b) + 0.5) * h
         for cc in range(S):
             slab_y[b * S + cc] = y
             slab_z[b * S + cc] = ((k + cc) + 0.5) * h
-    # a level sensor (no roll or pitch: the world's z does not move a point's x and y in
-    # the sensor frame) sees a column of voxels at one azimuth and one distance from its
-    # axis: computed once per column (x + 0.0 * z is x unless x is zero: those columns
-    # go voxel by voxel, as the sign of a zero can change the azimuth)
-    level = kind == SPHERICAL and M[0, 2] == 0.0 and M[1, 2] == 0.0
+    if kind == SPHERICAL and tans.shape[0] > 0:
+        # voxel by voxel, passes 1 and 2 at once (_fuse_spherical). A level sensor (no roll
+        # or pitch: the world's z does not move a point's x and y in the sensor frame) sees
+        # a column of voxels at one azimuth and one distance from its axis: computed once per
+        # column (x + 0.0 * z is x unless x is zero: those columns go voxel by voxel, as the
+        # sign of a zero can change the azimuth)
+        level = M[0, 2] == 0.0 and M[1, 2] == 0.0
+        nqu = quad_columns(kind, params)
+        row = 0
+        for a in range(S):
+            x = ((i + a) + 0.5) * h
+            base = corner + a * TT
+            for b in range(S):
+                first = b * S
+                bx = M[0, 0] * x + M[0, 1] * slab_y[first] + c[0]
+                by = M[1, 0] * x + M[1, 1] * slab_y[first] + c[1]
+                bz = M[2, 0] * x + M[2, 1] * slab_y[first] + c[2]
+                column = level and bx != 0.0 and by != 0.0
+                if column:
+                    cu, rho = spherical_column(params, bx, by)
+                    q0 = quad_index(kind, params, cu, 0.0)
+                for cc in range(S):
+                    z = slab_z[first + cc]
+                    if not column:
+                        cu, rho = spherical_column(params, bx + M[0, 2] * z, by + M[1, 2] * z)
+                        q0 = quad_index(kind, params, cu, 0.0)
+                    count, queued, row = _fuse_spherical(
+                        linear, params, table, tans, flat_bounds, rng, tile, base + b * T + cc,
+                        cu, q0, rho, bz + M[2, 2] * z, row, nqu, free_value, at, band_u, band_v,
+                        band_d, count, queued,
+                    )  # fmt: skip
+        return count, queued
     for a in range(S):
         x = ((i + a) + 0.5) * h
         for b in range(S):  # pass 1
@@ -70,15 +146,6 @@ def _fuse_block(
             bx = M[0, 0] * x + M[0, 1] * slab_y[first] + c[0]
             by = M[1, 0] * x + M[1, 1] * slab_y[first] + c[1]
             bz = M[2, 0] * x + M[2, 1] * slab_y[first] + c[2]
-            if level and bx != 0.0 and by != 0.0:
-                cu, rho = spherical_column(params, bx, by)
-                for m in range(first, first + S):
-                    u, v, d = spherical_in_column(params, table, cu, rho, bz + M[2, 2] * slab_z[m])
-                    slab_u[m] = u
-                    slab_v[m] = v
-                    slab_d[m] = d
-                    slab_q[m] = quad_index(kind, params, u, v)
-                continue
             for m in range(first, first + S):
                 z = slab_z[m]
                 u, v, d = project_point(

@@ -193,6 +193,67 @@ def spherical_in_column(params, table, u, rho, z):
     return u, v, d
 
 
+#: A point of a level column is put in its quad row by its tangent ``z / rho`` against the
+#: rows' tangents (:func:`row_of_tangent`, no ``atan2``) when it lies at least this much,
+#: relative to ``max(1, |t|)``, from every row's tangent: ``atan2`` and the rows' arithmetic
+#: err by a few ulps (about 1e-16 relative), so the row is the one ``project_point`` gives.
+ROW_TAN_MARGIN = 1e-9
+#: Steeper points (``|z / rho|`` above this) go through ``atan2``: there a tangent margin
+#: shrinks to an elevation margin of about ``ROW_TAN_MARGIN / |t|``.
+ROW_TAN_MAX = 1e3
+#: :func:`row_of_tangent`'s answers besides a row.
+ROW_OUTSIDE = -1
+ROW_UNSURE = -2
+
+
+@njit(cache=True)
+def row_tangents(params, table):
+    """The tangents of a spherical sensor's row elevations (where ``v`` is an integer),
+    strictly decreasing; empty when they are not (rows that do not go down, or an
+    elevation within 0.07 rad of a pole): then every point goes through ``atan2``."""
+    H = int(params[P_H])
+    out = np.empty(H)
+    for b in range(H):
+        if params[P_HAS_TABLE] != 0.0:
+            el = table[b]
+        else:
+            el = params[P_EL_MAX] - b * params[P_DEL]
+        if not abs(el) < 1.5:
+            return np.empty(0)
+        out[b] = math.tan(el)
+    for b in range(H - 1):
+        if not out[b] > out[b + 1]:
+            return np.empty(0)
+    return out
+
+
+@njit(cache=True, inline="always")
+def row_of_tangent(tans, t, r):
+    """The quad row (``0 .. H - 2``) of a spherical sensor's point whose elevation has the
+    tangent ``t``, as ``quad_index`` finds it from ``project_point``'s ``v``: ``ROW_OUTSIDE``
+    above the first row or below the last, ``ROW_UNSURE`` when ``t`` is within the margin of
+    a row's tangent (or too steep, or NaN). ``r``: a row to start the walk from (the last
+    point's row: a column's points cross a few rows)."""
+    n = tans.shape[0]
+    a = abs(t)
+    if not a <= ROW_TAN_MAX:
+        return ROW_UNSURE
+    margin = ROW_TAN_MARGIN * max(1.0, a)
+    if t > tans[0]:
+        return ROW_OUTSIDE if t - tans[0] > margin else ROW_UNSURE
+    if t < tans[n - 1]:
+        return ROW_OUTSIDE if tans[n - 1] - t > margin else ROW_UNSURE
+    r = min(max(r, 0), n - 2)
+    while r < n - 2 and tans[r + 1] >= t:
+        r += 1
+    while r > 0 and tans[r] < t:
+        r -= 1
+    # now tans[r] >= t >= tans[r + 1] (v in [r, r + 1]); sure when strictly inside
+    if tans[r] - t > margin and t - tans[r + 1] > margin:
+        return r
+    return ROW_UNSURE
+
+
 @njit(cache=True, inline="always")
 def distance(kind, params, x, y, z):
     """The range ``d`` of a sensor-frame point in the sensor's convention (pixel or not)."""

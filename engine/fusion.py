@@ -25,7 +25,7 @@ from numba import njit, prange
 from ._memory import Scratch, zeros
 from ._parts import _add_block, _fuse_block, _push, _see_part
 from ._sampling import bilinear, prefetch, prefetch_quad, quad_columns, quad_index, quad_origin
-from ._sensor_kernels import CYLINDRICAL, P_H, SPHERICAL, project_point
+from ._sensor_kernels import CYLINDRICAL, P_H, SPHERICAL, project_point, row_tangents
 from ._threads import warn_if_slow_threading
 from .certainty import SHAPE_LINEAR, contribution, pack
 from .classify import FREE, OUT, classify_tiles, reach_radius
@@ -97,6 +97,7 @@ def _integrate_kernel(kind: int, shape: int, parts: bool = True):
         N = T * T * T
         nqv = int(params[P_H]) - 1
         nqu = quad_columns(kind, params)
+        tans = row_tangents(params, table) if kind == SPHERICAL else np.empty(0)
         for n in prange(rows.shape[0]):
             row = rows[n]
             tile = data[row].reshape(-1)
@@ -187,9 +188,9 @@ def _integrate_kernel(kind: int, shape: int, parts: bool = True):
                 for n_block in range(nblocks):
                     count, queued = _fuse_block(
                         kind, linear, tile, blocks[n_block, 4], blocks[n_block, 0],
-                        blocks[n_block, 1], blocks[n_block, 2], blocks[n_block, 3], T, h, M, c,
-                        params, table, flat_bounds, rng, free_value, at, band_u, band_v, band_d,
-                        slab_y, slab_z, slab_u, slab_v, slab_d, slab_q, count, queued,
+                        blocks[n_block, 1], blocks[n_block, 2], blocks[n_block, 3], T, h, M,
+                        c, params, table, tans, flat_bounds, rng, free_value, at, band_u, band_v,
+                        band_d, slab_y, slab_z, slab_u, slab_v, slab_d, slab_q, count, queued,
                     )  # fmt: skip
             else:
                 slab_y = np.empty(TT)

@@ -11,6 +11,7 @@ import pytest
 from numba import njit
 from rangefuse.engine import FusionParams, GridSpec, NoiseModel, SphericalSensor, Volume
 from rangefuse.engine import _sensor_kernels as _k
+from rangefuse.engine._sampling import quad_columns, quad_index
 from rangefuse.engine.classify import OUT, classify_tiles
 from rangefuse.engine.planner import Sphere, tiles_near
 from rangefuse.engine.synth import make_dataset
@@ -63,6 +64,50 @@ def test_the_table_index_gives_the_rows_of_a_binary_search(seed: int) -> None:
     _rows(table, n, els, want, True)
     assert np.array_equal(got, want, equal_nan=True)
     assert np.array_equal(got.view(np.int64)[:-1], want.view(np.int64)[:-1])  # bit for bit
+
+
+@njit(cache=True)
+def _rows_two_ways(kind, params, table, tans, ts, rhos, start, out):
+    # per (t, rho): the quad row project_point's v gives (-1 outside the image) and the one
+    # row_of_tangent gives from z / rho as the kernel computes it
+    for m in range(ts.shape[0]):
+        rho = rhos[m]
+        z = ts[m] * rho
+        u, v, _ = _k.spherical_in_column(params, table, 0.5, rho, z)
+        q = quad_index(kind, params, u, v)
+        out[m, 0] = -1 if q < 0 else q // quad_columns(kind, params)
+        out[m, 1] = _k.row_of_tangent(tans, z / rho, start[m])
+
+
+@pytest.mark.parametrize("rows", ["table", "even"])
+def test_a_level_columns_rows_from_tangents_are_those_of_atan2(rows: str) -> None:
+    """The kernel puts a level column's voxels in their quad rows by the tangent of their
+    elevation: where it answers, the row (or 'outside') is the one ``project_point`` gives,
+    also a few ulps and a few margins from every row's edge; within the margin it answers
+    'unsure' (and the voxel takes ``atan2``)."""
+    rng = np.random.default_rng(7)
+    e = make_dataset("street", length_m=8).scans[0][1].sensor.elevations
+    if rows == "table":
+        sensor = SphericalSensor(width=16, height=len(e), max_range=80.0, elevations=e)
+    else:
+        sensor = SphericalSensor(width=16, height=len(e), max_range=80.0, el_min=e[-1], el_max=e[0])
+    kind, params, table = sensor.kernel_args()
+    tans = _k.row_tangents(params, table)
+    assert len(tans) == len(e) and np.all(np.diff(tans) < 0)
+    steps = (-3, -1.5, -0.5, 0.5, 1.5, 3)
+    edges = np.concatenate([tans * (1 + f * _k.ROW_TAN_MARGIN) for f in steps])
+    near = [np.nextafter(tans, np.inf), np.nextafter(tans, -np.inf), tans, edges]
+    ts = np.concatenate([rng.uniform(tans[-1] - 0.2, tans[0] + 0.2, 20000), *near, [0.0, -0.0]])
+    ts = np.repeat(ts, 3)
+    rhos = np.tile([0.7, 13.0, 79.0], len(ts) // 3)
+    start = rng.integers(-2, len(e) + 2, len(ts))
+    out = np.empty((len(ts), 2), np.int64)
+    _rows_two_ways(kind, params, table, tans, ts, rhos, start, out)
+    sure = out[:, 1] != _k.ROW_UNSURE
+    assert np.array_equal(out[sure, 1], out[sure, 0])
+    assert (out[sure, 1] == _k.ROW_OUTSIDE).sum() > 100 and (out[sure, 1] >= 0).sum() > 10000
+    assert 0 < (~sure).sum() < 0.1 * len(ts)  # the edges' own tangents and those within 1e-9
+    assert not (~sure[: 3 * 20000]).any()  # random ones are not that near an edge
 
 
 def test_a_sensor_with_a_table_projects_and_unprojects_through_it() -> None:
