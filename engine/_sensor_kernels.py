@@ -139,17 +139,8 @@ def project_point(kind, params, table, x, y, z):
             d = math.sqrt(x * x + y * y + z * z)
         return u, v, d
     if kind == SPHERICAL:
-        rho = math.sqrt(x * x + y * y)
-        d = math.sqrt(rho * rho + z * z)
-        if d == 0.0:
-            return nan, nan, nan
-        u = _column_from_azimuth(params, math.atan2(y, x))
-        el = math.atan2(z, rho)
-        if params[P_HAS_TABLE] != 0.0:
-            v = _row_from_table(table, int(params[P_H]), el)
-        else:
-            v = (params[P_EL_MAX] - el) / params[P_DEL]
-        return u, v, d
+        u, rho = spherical_column(params, x, y)
+        return spherical_in_column(params, table, u, rho, z)
     if kind == CYLINDRICAL:
         rho = math.sqrt(x * x + y * y)
         if rho == 0.0:
@@ -180,8 +171,8 @@ def spherical_column(params, x, y):
 @njit(cache=True, inline="always")
 def spherical_in_column(params, table, u, rho, z):
     """:func:`project_point` for a spherical sensor, the point's column ``u`` and ``rho``
-    known (:func:`spherical_column`): the same ``(u, v, d)``, bit for bit, for one ``atan2``
-    and one square root instead of two."""
+    known (:func:`spherical_column`): one ``atan2`` and one square root, the column's are
+    computed once for a level column of voxels (``project_point`` calls the two)."""
     d = math.sqrt(rho * rho + z * z)
     if d == 0.0:
         return math.nan, math.nan, math.nan
