@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import copy
 import logging
+import signal
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -93,6 +94,11 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     )
     # bound here, not by uvicorn: the other HTTP processes answer on the same socket
     app.state.socket = config.bind_socket()
+    # A background job of a shell script starts with SIGINT ignored. uvicorn stops on SIGINT
+    # all the same, then raises it again for the exit status: ignored, that exit was 0
+    # instead of 130 (interrupted). SIGINT stops the service either way; now it says so.
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     uvicorn.Server(config).run(sockets=[app.state.socket])
     return 0
 

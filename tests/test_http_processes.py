@@ -119,3 +119,16 @@ def test_the_other_processes_stop_with_the_service(tmp_path):
     assert server.proc.returncode == 130, "".join(server.lines[-30:])  # interrupted: SIGINT
     _, alive = psutil.wait_procs(others, timeout=30)
     assert not alive
+
+
+def test_a_service_started_with_sigint_ignored_stops_on_sigint_as_interrupted(tmp_path):
+    """A background job of a shell script (``rangefuse serve &``) starts with SIGINT ignored:
+    SIGINT still stops the service, with the status of an interrupted command (it was 0)."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # the child inherits it
+    try:
+        gen = serving(tmp_path / "data", RANGEFUSE_WORKERS="1")
+        server = next(gen)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    gen.close()
+    assert server.proc.returncode == 130, "".join(server.lines[-30:])
