@@ -184,7 +184,7 @@ def spherical_in_column(params, table, u, rho, z):
     return u, v, d
 
 
-#: A point of a level column is put in its quad row by its tangent ``z / rho`` against the
+#: A spherical sensor's point is put in its quad row by its tangent ``z / rho`` against the
 #: rows' tangents (:func:`row_of_tangent`, no ``atan2``) when it lies at least this much,
 #: relative to ``max(1, |t|)``, from every row's tangent: ``atan2`` and the rows' arithmetic
 #: err by a few ulps (about 1e-16 relative), so the row is the one ``project_point`` gives.
