@@ -12,6 +12,8 @@ takes the engine's kernels (``engine/`` and its subpackages: the synthetic rende
 call the sensors'): the same cache folder numba would pick, and as the stamp a SHA-256 over
 every ``.py`` file under ``engine/``. Any change to the engine makes every kernel
 compile again on its next use; a change elsewhere (storage, the service) compiles nothing.
+The kernels of the checkout's ``tests/`` (helpers that compile engine kernels into theirs)
+are stamped with the engine's stamp and their own file's.
 Importing this module installs it; ``engine/__init__.py`` imports it before any kernel is
 defined (numba picks the locator when ``@njit(cache=True)`` decorates a function).
 """
@@ -26,6 +28,9 @@ from typing import Any
 __all__ = ["engine_source_stamp", "install", "source_stamp"]
 
 ENGINE_DIR = Path(__file__).resolve().parent
+#: The checkout's tests: their helper kernels compile the engine's in too, so their stamp
+#: is the engine's and their own file's (absent where the package is installed alone).
+TESTS_DIR = ENGINE_DIR.parent / "tests"
 
 
 @functools.lru_cache(maxsize=1)
@@ -53,20 +58,24 @@ class _EngineLocator:
     #: numba's locators, in its order (set by :func:`install`).
     standard: tuple[Any, ...] = ()
 
-    def __init__(self, inner: Any) -> None:
-        self._inner = inner
-
     @classmethod
     def from_function(cls, py_func: Any, py_file: str) -> _EngineLocator | None:
-        if ENGINE_DIR not in Path(py_file).resolve().parents:
+        parents = Path(py_file).resolve().parents
+        if ENGINE_DIR not in parents and TESTS_DIR not in parents:
             return None
         for locator_class in cls.standard:
             inner = locator_class.from_function(py_func, py_file)
             if inner is not None:
-                return cls(inner)
+                return cls(inner, ENGINE_DIR not in parents)
         return None
 
-    def get_source_stamp(self) -> str:
+    def __init__(self, inner: Any, own_file_too: bool = False) -> None:
+        self._inner = inner
+        self._own_file_too = own_file_too
+
+    def get_source_stamp(self) -> Any:
+        if self._own_file_too:  # a test's kernel: the engine's and its own file's
+            return (engine_source_stamp(), self._inner.get_source_stamp())
         return engine_source_stamp()
 
     def __getattr__(self, name: str) -> Any:  # the cache path, the disambiguator, ...

@@ -39,6 +39,18 @@ def test_every_cached_engine_kernel_is_stamped_with_the_whole_engine() -> None:
         assert Path(locator.get_cache_path()).is_dir()  # numba's folder for it, as before
 
 
+def test_a_tests_kernel_is_stamped_with_the_engine_and_its_own_file() -> None:
+    """A test's helper kernel compiles engine kernels into it (tests/test_lidar.py's compares
+    the engine's beam rows found two ways): an engine change must compile it again too."""
+    from tests.test_lidar import _rows_two_ways
+
+    locator = _rows_two_ways._cache._impl.locator
+    assert type(locator).__name__ == "_EngineLocator"
+    engine, own = locator.get_source_stamp()
+    assert engine == engine_source_stamp()
+    assert own == locator._inner.get_source_stamp()  # numba's stamp of the test file
+
+
 def test_the_stamp_changes_with_any_engine_file(tmp_path) -> None:
     copy = tmp_path / "engine"
     shutil.copytree(ENGINE_DIR, copy, ignore=shutil.ignore_patterns("__pycache__"))
