@@ -26,6 +26,33 @@ from ._sensor_kernels import (
 )
 from .classify import _classify_part, _classify_tile
 
+#: Rows of a tile's table of level columns (:func:`level_column`).
+_COL_STATE, _COL_U, _COL_RHO = range(3)
+#: States of a column in that table: not yet computed, computed, or on an axis of the sensor
+#: frame (its ``x`` or ``y`` is 0: the sign of that zero depends on the voxel's height).
+COL_UNKNOWN, COL_KNOWN, COL_ON_AXIS = 0.0, 1.0, 2.0
+
+
+@njit(cache=True, inline="always")
+def level_column(cols, n, params, bx, by):
+    """Whether column ``n`` of a tile (``cols``: 3 x T^2, the rows above) has its ``u`` and
+    ``rho`` in ``cols``, computed the first time a block of the tile asks for it: a level
+    spherical sensor's column of voxels shares its sensor-frame ``x`` and ``y`` (``bx``,
+    ``by``), so :func:`~engine._sensor_kernels.spherical_column` of them is that of each of
+    its voxels, bit for bit. A column with ``x`` or ``y`` exactly 0 is not kept (each voxel
+    computes its own: ``x + 0.0 * z`` can change the sign of a zero)."""
+    state = cols[_COL_STATE, n]
+    if state == COL_UNKNOWN:
+        if bx != 0.0 and by != 0.0:
+            cu, rho = spherical_column(params, bx, by)
+            cols[_COL_U, n] = cu
+            cols[_COL_RHO, n] = rho
+            state = COL_KNOWN
+        else:
+            state = COL_ON_AXIS
+        cols[_COL_STATE, n] = state
+    return state == COL_KNOWN
+
 
 @njit(cache=True, inline="always")
 def _add_block(tile, corner, S, T, value):
@@ -37,7 +64,7 @@ def _add_block(tile, corner, S, T, value):
                 tile[line + cc] += value
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _see_part(
     kind, key, S, h, M, c, o_W, params, table, flat_bounds, p_reach, p_free, p_levels,
     reach_max, nqu, nqv, linear, lo, hi, acc,
@@ -54,19 +81,65 @@ def _see_part(
     )  # fmt: skip
 
 
+#: Outcomes of :func:`_band_outcome`.
+BAND_UNSURE, BAND_FREE, BAND_NOTHING = 0, 1, 2
+#: Relative margin of :func:`_band_outcome`'s bounds for the rounding of the exact path
+#: (the bilinear range, ``alpha`` and ``eps`` err by a few ulps: about 1e-15).
+BAND_MARGIN = 1e-9
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _band_outcome(rng, qu, r, u, fv, slack, d, fit, linear):
+    # What pass 3 will give a band voxel of a spherical sensor in quad (qu, r), decided
+    # without its elevation's atan2 where the answer is sure: BAND_NOTHING (beyond the
+    # reach), BAND_FREE (logit(rho), linear shape) or BAND_UNSURE. ``u``: the voxel's exact
+    # column; ``fv``: its fraction of the row from the row's chord, within ``slack``
+    # (engine._sensor_kernels.row_chords). At a fixed u the bilinear range is affine in fv
+    # between the column's ranges on the two rows, so it lies between its values at the
+    # ends of fv's interval; ``alpha > eps + f`` (nothing) and ``alpha < -eps`` (free) only
+    # get truer as the range falls, resp. grows (eps = eps0 + eps1 r, 0 <= eps1 < 1), so
+    # each is tested at the end of the range's interval where it is least true.
+    qu1 = qu + 1
+    if qu1 == rng.shape[1]:
+        qu1 = 0
+    fu = u - qu
+    top = (1.0 - fu) * rng[r, qu] + fu * rng[r, qu1]
+    bottom = (1.0 - fu) * rng[r + 1, qu] + fu * rng[r + 1, qu1]
+    f_lo = max(fv - slack, 0.0)
+    f_hi = min(fv + slack, 1.0)
+    r_a = top + f_lo * (bottom - top)
+    r_b = top + f_hi * (bottom - top)
+    margin = BAND_MARGIN * (abs(top) + abs(bottom))
+    r_lo = min(r_a, r_b) - margin
+    r_hi = max(r_a, r_b) + margin
+    margin = BAND_MARGIN * (d + abs(top) + abs(bottom) + 1.0)
+    eps0 = fit[0]
+    eps1 = fit[1]
+    eps_hi = eps0 + eps1 * r_hi
+    f = fit[2] if fit[2] > 0.0 else eps_hi
+    if d - r_hi - eps_hi - f > margin:
+        return BAND_NOTHING
+    if linear and d - r_lo + eps0 + eps1 * r_lo < -margin:
+        return BAND_FREE
+    return BAND_UNSURE
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def _fuse_spherical(
-    linear, params, table, tans, flat_bounds, rng, tile, index, cu, q0, rho, z, row, nqu,
-    free_value, at, band_u, band_v, band_d, count, queued,
+    linear, params, table, tans, chords, fit, flat_bounds, rng, tile, index, cu, q0, rho, z,
+    row, nqu, free_value, at, band_u, band_v, band_d, count, queued,
 ):  # fmt: skip
     # passes 1 and 2 at once for the voxel tile[index] of a spherical sensor, its column cu,
     # its distance from the axis rho and its height z in the sensor frame known (q0: the
     # column's quad in row 0, -1 outside the image). The quad row comes from the tangent of
     # the elevation (row_of_tangent), so that only a voxel in the band, or within a margin
-    # of a row's edge, takes the elevation's atan2. Returns count, queued and the row.
+    # of a row's edge, takes the elevation's atan2; a band voxel whose outcome is sure from
+    # its row's chord (_band_outcome: ``chords`` from row_chords, empty when not used;
+    # ``fit``: eps0, eps1 and the falloff) does not either. Returns count, queued and the row.
     if q0 < 0:
         return count, queued, row
-    r = row_of_tangent(tans, z / rho, row)
+    t = z / rho
+    r = row_of_tangent(tans, t, row)
     if r == ROW_OUTSIDE:
         return count, queued, row
     if r == ROW_UNSURE:
@@ -82,6 +155,15 @@ def _fuse_spherical(
         tile[index] += free_value
         count += 1
     elif d <= flat_bounds[2 * q + 1]:
+        if r >= 0 and chords.shape[1] > 0:
+            outcome = _band_outcome(
+                rng, q0, r, cu, (tans[r] - t) * chords[0, r], chords[1, r], d, fit, linear
+            )
+            if outcome == BAND_FREE:
+                tile[index] += free_value
+                return count + 1, queued, row
+            if outcome == BAND_NOTHING:
+                return count, queued, row
         u, v, d = spherical_in_column(params, table, cu, rho, z)
         at[queued] = index
         band_u[queued] = u
@@ -94,13 +176,19 @@ def _fuse_spherical(
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _fuse_block(
-    kind, linear, tile, corner, i, j, k, S, T, h, M, c, params, table, tans, flat_bounds, rng,
+    kind, linear, tile, block, T, h, M, c, params, table, tans, chords, fit, flat_bounds, rng,
     free_value, at, band_u, band_v, band_d, slab_y, slab_z, slab_u, slab_v, slab_d, slab_q,
-    count, queued,
+    cols, count, queued,
 ):  # fmt: skip
     # passes 1 and 2 (see _integrate_kernel) over the block of S^3 voxels whose first voxel is
-    # ``tile[corner]``, voxel (i, j, k) of the grid; returns the new count and queue length
-    # (``tans``: the sensor's row_tangents, empty if not spherical)
+    # ``tile[corner]``, voxel (i, j, k) of the grid (``block``: a row of _push); returns the
+    # new count and queue length (``tans``: the sensor's row_tangents, empty if not
+    # spherical; ``cols``: the tile's level columns, level_column)
+    i = block[0]
+    j = block[1]
+    k = block[2]
+    S = block[3]
+    corner = block[4]
     TT = T * T
     for b in range(S):
         y = ((j + b) + 0.5) * h
@@ -111,9 +199,9 @@ def _fuse_block(
         # voxel by voxel, passes 1 and 2 at once (_fuse_spherical). A level sensor (no roll
         # or pitch: the world's z does not move a point's x and y in the sensor frame) sees
         # a column of voxels at one azimuth and one distance from its axis: computed once per
-        # column (x + 0.0 * z is x unless x is zero: those columns go voxel by voxel, as the
-        # sign of a zero can change the azimuth)
-        level = M[0, 2] == 0.0 and M[1, 2] == 0.0
+        # column of the tile (level_column; x + 0.0 * z is x unless x is zero: those columns
+        # go voxel by voxel, as the sign of a zero can change the azimuth)
+        level = cols.shape[1] > 0
         nqu = quad_columns(kind, params)
         row = 0
         for a in range(S):
@@ -124,9 +212,11 @@ def _fuse_block(
                 bx = M[0, 0] * x + M[0, 1] * slab_y[first] + c[0]
                 by = M[1, 0] * x + M[1, 1] * slab_y[first] + c[1]
                 bz = M[2, 0] * x + M[2, 1] * slab_y[first] + c[2]
-                column = level and bx != 0.0 and by != 0.0
+                n = ((i + a) % T) * T + (j + b) % T
+                column = level and level_column(cols, n, params, bx, by)
                 if column:
-                    cu, rho = spherical_column(params, bx, by)
+                    cu = cols[_COL_U, n]
+                    rho = cols[_COL_RHO, n]
                     q0 = quad_index(kind, params, cu, 0.0)
                 for cc in range(S):
                     z = slab_z[first + cc]
@@ -134,9 +224,9 @@ def _fuse_block(
                         cu, rho = spherical_column(params, bx + M[0, 2] * z, by + M[1, 2] * z)
                         q0 = quad_index(kind, params, cu, 0.0)
                     count, queued, row = _fuse_spherical(
-                        linear, params, table, tans, flat_bounds, rng, tile, base + b * T + cc,
-                        cu, q0, rho, bz + M[2, 2] * z, row, nqu, free_value, at, band_u, band_v,
-                        band_d, count, queued,
+                        linear, params, table, tans, chords, fit, flat_bounds, rng, tile,
+                        base + b * T + cc, cu, q0, rho, bz + M[2, 2] * z, row, nqu, free_value,
+                        at, band_u, band_v, band_d, count, queued,
                     )  # fmt: skip
         return count, queued
     for a in range(S):

@@ -90,7 +90,7 @@ def elevation_table(elevations: np.ndarray) -> np.ndarray:
     return np.concatenate([e, [inv_w, float(n_bins)], starts])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _row_from_table(table, n, el):
     # table holds n decreasing elevations (then its index: elevation_table); find v0 with
     # table[v0] >= el > table[v0 + 1] (the row a binary search finds), extrapolating
@@ -215,6 +215,35 @@ def row_tangents(params, table):
     for b in range(H - 1):
         if not out[b] > out[b + 1]:
             return np.empty(0)
+    return out
+
+
+#: The largest curvature of ``atan``: ``|atan''(t)| = 2 |t| / (1 + t^2)^2``, at most
+#: ``3 sqrt(3) / 8`` (at ``t = 1 / sqrt(3)``).
+_ATAN_CURVATURE = 3.0 * math.sqrt(3.0) / 8.0
+#: Added to each row's chord bound (:func:`row_chords`): the rounding of ``atan2``, of the
+#: division ``z / rho`` and of ``v``'s arithmetic is about 1e-15 of a row.
+ROW_CHORD_SLACK = 1e-9
+
+
+@njit(cache=True)
+def row_chords(params, table, tans):
+    """How far a spherical sensor's ``v`` can lie from a line in the tangent of the
+    elevation, row by row (``tans``: :func:`row_tangents`, not empty). For a point of
+    quad row ``r`` whose elevation has the tangent ``t``, ``fv = v - r`` lies within
+    ``out[1, r]`` of the chord ``(tans[r] - t) * out[0, r]``: ``fv`` is ``(e_r - atan(t)) /
+    (e_r - e_{r+1})`` and ``atan`` departs from its chord between ``tans[r + 1]`` and
+    ``tans[r]`` by at most its curvature times ``(tans[r] - tans[r + 1])^2 / 8``."""
+    H = tans.shape[0]
+    out = np.empty((2, H - 1))
+    for r in range(H - 1):
+        if params[P_HAS_TABLE] != 0.0:
+            gap = table[r] - table[r + 1]
+        else:
+            gap = params[P_DEL]
+        dt = tans[r] - tans[r + 1]
+        out[0, r] = 1.0 / dt
+        out[1, r] = _ATAN_CURVATURE * dt * dt / 8.0 / gap + ROW_CHORD_SLACK
     return out
 
 

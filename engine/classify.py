@@ -58,7 +58,7 @@ _NO_BOUNDS = np.zeros(0, np.float32)
 _AXIS_CLEARANCE = 1e-6
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _clip_quads(lo, hi, n):
     """Quad index range covering continuous pixel interval [lo, hi], clipped to [0, n-1]."""
     if hi < 0.0 or lo > n:  # lo > n: past the last pixel even when it is the wrap quad
@@ -101,7 +101,7 @@ def _blocks(reach, free, levels, qu0, qu1, qv0, qv1, acc):
             _fold(acc, reach[offset + bv * cols + bu], free[offset + bv * cols + bu])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _quads(bounds, reach, free, levels, qu0, qu1, qv0, qv1, nqu, acc):
     """Fold the statistics of quads [qu0, qu1] x [qv0, qv1] into ``acc``: quad by quad from
     ``bounds`` (the flat float32 pairs of :func:`engine._sampling.quad_bounds`) when it is
@@ -115,7 +115,7 @@ def _quads(bounds, reach, free, levels, qu0, qu1, qv0, qv1, nqu, acc):
             _fold(acc, bounds[row + 2 * qu + 1], bounds[row + 2 * qu])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _rect_stats(bounds, reach, free, levels, u_lo, u_hi, v_lo, v_hi, nqu, nqv, ring, acc):
     """Statistics of the quads under a pixel rectangle, into ``acc`` (see :func:`_quads`;
     an empty ``bounds`` reads the blocks of the pyramid only).
@@ -306,7 +306,7 @@ def _classify_tile(
     return PARTIAL
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _classify_part(
     key, S, h, M, c, o_W, params, table, bounds, reach, free, levels, reach_max, nqu, nqv,
     linear, lo, hi, acc,

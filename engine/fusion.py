@@ -23,9 +23,9 @@ import numpy as np
 from numba import njit, prange
 
 from ._memory import Scratch, zeros
-from ._parts import _add_block, _fuse_block, _push, _see_part
+from ._parts import COL_UNKNOWN, _add_block, _fuse_block, _push, _see_part
 from ._sampling import bilinear, prefetch, prefetch_quad, quad_columns, quad_index, quad_origin
-from ._sensor_kernels import CYLINDRICAL, P_H, SPHERICAL, project_point, row_tangents
+from ._sensor_kernels import CYLINDRICAL, P_H, SPHERICAL, project_point, row_chords, row_tangents
 from ._threads import warn_if_slow_threading
 from .certainty import SHAPE_LINEAR, contribution, pack
 from .classify import FREE, OUT, classify_tiles, reach_radius
@@ -98,6 +98,12 @@ def _integrate_kernel(kind: int, shape: int, parts: bool = True):
         nqv = int(params[P_H]) - 1
         nqu = quad_columns(kind, params)
         tans = row_tangents(params, table) if kind == SPHERICAL else np.empty(0)
+        # band voxels decided from their row's chord where sure (engine._parts._band_outcome:
+        # its monotonicity needs 0 <= eps1 < 1)
+        use_chords = tans.shape[0] > 1 and 0.0 <= eps1 < 1.0
+        chords = row_chords(params, table, tans) if use_chords else np.empty((2, 0))
+        fit = np.array([eps0, eps1, falloff])
+        level = M[0, 2] == 0.0 and M[1, 2] == 0.0  # no roll or pitch
         for n in prange(rows.shape[0]):
             row = rows[n]
             tile = data[row].reshape(-1)
@@ -139,6 +145,10 @@ def _integrate_kernel(kind: int, shape: int, parts: bool = True):
                 acc = np.empty(3)
                 blocks = np.empty((64, 5), np.int64)  # first voxel (i, j, k), side, tile index
                 nblocks = 0
+                # the tile's columns of a level spherical sensor, computed once each
+                # (engine._parts.level_column)
+                cols = np.empty((3, TT if kind == SPHERICAL and level else 0))
+                cols[0] = COL_UNKNOWN
                 for part in range(8):
                     sa = (part >> 2) & 1
                     sb = (part >> 1) & 1
@@ -187,10 +197,9 @@ def _integrate_kernel(kind: int, shape: int, parts: bool = True):
                         )  # fmt: skip
                 for n_block in range(nblocks):
                     count, queued = _fuse_block(
-                        kind, linear, tile, blocks[n_block, 4], blocks[n_block, 0],
-                        blocks[n_block, 1], blocks[n_block, 2], blocks[n_block, 3], T, h, M,
-                        c, params, table, tans, flat_bounds, rng, free_value, at, band_u, band_v,
-                        band_d, slab_y, slab_z, slab_u, slab_v, slab_d, slab_q, count, queued,
+                        kind, linear, tile, blocks[n_block], T, h, M, c, params, table, tans,
+                        chords, fit, flat_bounds, rng, free_value, at, band_u, band_v, band_d,
+                        slab_y, slab_z, slab_u, slab_v, slab_d, slab_q, cols, count, queued,
                     )  # fmt: skip
             else:
                 slab_y = np.empty(TT)

@@ -11,7 +11,9 @@ import pytest
 from numba import njit
 from rangefuse.engine import FusionParams, GridSpec, NoiseModel, SphericalSensor, Volume
 from rangefuse.engine import _sensor_kernels as _k
-from rangefuse.engine._sampling import quad_columns, quad_index
+from rangefuse.engine._parts import BAND_FREE, BAND_NOTHING, BAND_UNSURE, _band_outcome
+from rangefuse.engine._sampling import bilinear, quad_columns, quad_index, quad_origin
+from rangefuse.engine.certainty import SHAPE_LINEAR, contribution, logit, quantise
 from rangefuse.engine.classify import OUT, classify_tiles
 from rangefuse.engine.planner import Sphere, tiles_near
 from rangefuse.engine.synth import make_dataset
@@ -108,6 +110,94 @@ def test_a_level_columns_rows_from_tangents_are_those_of_atan2(rows: str) -> Non
     assert (out[sure, 1] == _k.ROW_OUTSIDE).sum() > 100 and (out[sure, 1] >= 0).sum() > 10000
     assert 0 < (~sure).sum() < 0.1 * len(ts)  # the edges' own tangents and those within 1e-9
     assert not (~sure[: 3 * 20000]).any()  # random ones are not that near an edge
+
+
+@njit(cache=True)
+def _band_two_ways(params, table, tans, chords, rng, fit, q_rho, shape, us, ts, rhos, ds, out):
+    # per point (column u, tangent t, distance from the axis rho; a voxel at distance d):
+    # out[m] = (row, fv - its chord, the chord's bound, the bilinear range, pass 3's
+    # outcome (0 a value of the ramp, 1 logit(rho), 2 nothing), _band_outcome's)
+    linear = shape == SHAPE_LINEAR
+    for m in range(us.shape[0]):
+        rho = rhos[m]
+        z = ts[m] * rho
+        t = z / rho
+        r = _k.row_of_tangent(tans, t, 0)
+        out[m, 0] = r
+        if r < 0:
+            continue
+        u, v, _ = _k.spherical_in_column(params, table, us[m], rho, z)
+        qu, qv = quad_origin(_k.SPHERICAL, params, u, v)
+        chord = (tans[r] - t) * chords[0, r]
+        out[m, 1] = (v - r) - chord
+        out[m, 2] = chords[1, r]
+        r_bil = bilinear(rng, qu, qv, u, v)
+        out[m, 3] = r_bil
+        value, inf = contribution(ds[m] - r_bil, r_bil, fit[0], fit[1], 0.01, fit[2], shape, q_rho)
+        out[m, 4] = 2 if not inf else (1 if value == q_rho else 0)
+        out[m, 5] = _band_outcome(rng, qu, r, u, chord, chords[1, r], ds[m], fit, linear)
+
+
+@pytest.mark.parametrize("rows", ["table", "even"])
+@pytest.mark.parametrize("fit", [(0.2, 0.0, 0.0), (0.05, 0.01, 0.3)])
+def test_a_band_voxels_outcome_from_its_rows_chord_is_that_of_pass_3(rows: str, fit) -> None:
+    """The kernel settles a LiDAR's band voxel as free or beyond the reach from the chord of
+    its row in the tangent of the elevation, without its ``atan2``: the row's ``fv`` lies
+    within the chord's bound (which the curvature of ``atan`` fills: the bound without it is
+    broken), and where the outcome is sure it is pass 3's, also for voxels a hair from the
+    thresholds; voxels within the margin go through pass 3."""
+    rng = np.random.default_rng(11)
+    e = make_dataset("street", length_m=8).scans[0][1].sensor.elevations
+    W = 32  # a full turn: the last quad's right column is the first (its u up to W)
+    if rows == "table":
+        sensor = SphericalSensor(width=W, height=len(e), max_range=80.0, elevations=e, wrap=True)
+    else:
+        sensor = SphericalSensor(
+            width=W, height=len(e), max_range=80.0, el_min=e[-1], el_max=e[0], wrap=True
+        )
+    _, params, table = sensor.kernel_args()
+    tans = _k.row_tangents(params, table)
+    chords = _k.row_chords(params, table, tans)
+    ranges = rng.uniform(2.0, 80.0, (len(e), W))  # metres of jump between neighbours
+    ranges[1::3] = ranges[::3][: len(ranges[1::3])]  # and quads whose two rows are the same
+    n = 40000
+    us = rng.uniform(0, W, n)
+    ts = rng.uniform(tans[-1], tans[0], n)
+    rhos = rng.uniform(0.5, 60.0, n)
+    fit_a = np.array(fit, np.float64)
+    q_rho = quantise(logit(0.01))
+    out = np.zeros((n, 6))
+    _band_two_ways(params, table, tans, chords, ranges, fit_a, q_rho, SHAPE_LINEAR, us, ts, rhos,
+                   np.zeros(n), out)  # fmt: skip
+    inside = out[:, 0] >= 0
+    assert inside.mean() > 0.99
+    dev, bound, r_bil = out[inside, 1], out[inside, 2], out[inside, 3]
+    assert np.all(np.abs(dev) <= bound)
+    assert np.abs(dev).max() > 0.3 * (bound - _k.ROW_CHORD_SLACK).max()  # the bound is needed
+    # voxels spread over the band, and voxels a hair from each threshold
+    eps = fit_a[0] + fit_a[1] * r_bil
+    f = fit_a[2] if fit_a[2] > 0 else eps
+    hairs = [0.0, 1e-16, 4e-16, 1e-15, 1e-12, 1e-9, 1e-6, 1e-3, 1e-1]
+    hair = rng.choice(hairs, len(r_bil)) * rng.choice([-1, 1], len(r_bil))
+    ds = np.concatenate([
+        r_bil + rng.uniform(-3.0, 3.0, len(r_bil)),
+        r_bil + eps + f + hair * r_bil,  # beyond the reach or not
+        r_bil - eps + hair * r_bil,  # free or on the ramp
+    ])  # fmt: skip
+    many = lambda a: np.tile(a[inside], 3)  # noqa: E731
+    out = np.zeros((len(ds), 6))
+    for shape in (SHAPE_LINEAR, 1):
+        _band_two_ways(params, table, tans, chords, ranges, fit_a, q_rho, shape, many(us),
+                       many(ts), many(rhos), ds, out)  # fmt: skip
+        exact, sure = out[:, 4], out[:, 5]
+        assert np.array_equal(exact[sure == BAND_FREE], np.full((sure == BAND_FREE).sum(), 1.0))
+        assert np.all(exact[sure == BAND_NOTHING] == 2)
+        # most of the spread voxels are beyond the reach or free (the ramp is 0.6 to 2 m)
+        assert (sure[: len(r_bil)] != BAND_UNSURE).mean() > (0.6 if shape == SHAPE_LINEAR else 0.3)
+        assert (sure == BAND_NOTHING).sum() > 1000
+        assert ((sure == BAND_FREE).sum() > 1000) == (shape == SHAPE_LINEAR)
+        near = np.abs(np.tile(hair, 2)) <= 1e-12
+        assert np.all(sure[len(r_bil) :][near] == BAND_UNSURE)
 
 
 def test_a_sensor_with_a_table_projects_and_unprojects_through_it() -> None:
