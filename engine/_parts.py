@@ -16,13 +16,17 @@ from numba import njit
 
 from ._sampling import prefetch_quad, quad_columns, quad_index
 from ._sensor_kernels import (
+    COLUMN_UNSURE,
     ROW_OUTSIDE,
     ROW_UNSURE,
     SPHERICAL,
+    _column_from_azimuth,
+    column_of_direction,
     project_point,
     row_of_tangent,
     spherical_column,
     spherical_in_column,
+    wraps,
 )
 from .classify import _classify_part, _classify_tile
 
@@ -126,12 +130,13 @@ def _band_outcome(rng, qu, r, u, fv, slack, d, fit, linear):
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _fuse_spherical(
-    linear, params, table, tans, chords, fit, flat_bounds, rng, tile, index, cu, q0, rho, z,
-    row, nqu, free_value, at, band_u, band_v, band_d, count, queued,
+    linear, params, table, tans, chords, fit, flat_bounds, rng, tile, index, cu, q0, x, y, rho,
+    z, row, nqu, free_value, at, band_u, band_v, band_d, count, queued,
 ):  # fmt: skip
     # passes 1 and 2 at once for the voxel tile[index] of a spherical sensor, its column cu,
     # its distance from the axis rho and its height z in the sensor frame known (q0: the
-    # column's quad in row 0, -1 outside the image). The quad row comes from the tangent of
+    # column's quad in row 0, -1 outside the image; cu NaN: not computed yet, then from the
+    # voxel's sensor-frame x and y where it is needed). The quad row comes from the tangent of
     # the elevation (row_of_tangent), so that only a voxel in the band, or within a margin
     # of a row's edge, takes the elevation's atan2; a band voxel whose outcome is sure from
     # its row's chord (_band_outcome: ``chords`` from row_chords, empty when not used;
@@ -143,6 +148,8 @@ def _fuse_spherical(
     if r == ROW_OUTSIDE:
         return count, queued, row
     if r == ROW_UNSURE:
+        if cu != cu:
+            cu = _column_from_azimuth(params, math.atan2(y, x))  # as spherical_column
         u, v, d = spherical_in_column(params, table, cu, rho, z)
         q = quad_index(SPHERICAL, params, u, v)
         if q < 0:
@@ -155,6 +162,8 @@ def _fuse_spherical(
         tile[index] += free_value
         count += 1
     elif d <= flat_bounds[2 * q + 1]:
+        if cu != cu:
+            cu = _column_from_azimuth(params, math.atan2(y, x))  # as spherical_column
         if r >= 0 and chords.shape[1] > 0:
             outcome = _band_outcome(
                 rng, q0, r, cu, (tans[r] - t) * chords[0, r], chords[1, r], d, fit, linear
@@ -176,8 +185,8 @@ def _fuse_spherical(
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _fuse_block(
-    kind, linear, tile, block, T, h, M, c, params, table, tans, chords, fit, flat_bounds, rng,
-    free_value, at, band_u, band_v, band_d, slab_y, slab_z, slab_u, slab_v, slab_d, slab_q,
+    kind, linear, tile, block, T, h, M, c, params, table, tans, chords, fit, edges, flat_bounds,
+    rng, free_value, at, band_u, band_v, band_d, slab_y, slab_z, slab_u, slab_v, slab_d, slab_q,
     cols, count, queued,
 ):  # fmt: skip
     # passes 1 and 2 (see _integrate_kernel) over the block of S^3 voxels whose first voxel is
@@ -203,7 +212,9 @@ def _fuse_block(
         # go voxel by voxel, as the sign of a zero can change the azimuth)
         level = cols.shape[1] > 0
         nqu = quad_columns(kind, params)
+        wrap = wraps(kind, params)
         row = 0
+        last_k = 0
         for a in range(S):
             x = ((i + a) + 0.5) * h
             base = corner + a * TT
@@ -218,15 +229,32 @@ def _fuse_block(
                     cu = cols[_COL_U, n]
                     rho = cols[_COL_RHO, n]
                     q0 = quad_index(kind, params, cu, 0.0)
+                px = bx
+                py = by
                 for cc in range(S):
                     z = slab_z[first + cc]
                     if not column:
-                        cu, rho = spherical_column(params, bx + M[0, 2] * z, by + M[1, 2] * z)
-                        q0 = quad_index(kind, params, cu, 0.0)
+                        # a tilted pose's voxel (or one on an axis): its quad column from its
+                        # direction where sure, its exact column then only where needed
+                        px = bx + M[0, 2] * z
+                        py = by + M[1, 2] * z
+                        rho = math.sqrt(px * px + py * py)  # as spherical_column
+                        k = COLUMN_UNSURE
+                        if edges.shape[1] > 0:
+                            k = column_of_direction(edges, px, py, rho, last_k, wrap)
+                        if k >= 0:
+                            cu = math.nan
+                            q0 = k
+                            last_k = k
+                        else:
+                            cu = _column_from_azimuth(params, math.atan2(py, px))
+                            q0 = quad_index(kind, params, cu, 0.0)
+                            if q0 >= 0:  # the next voxel's walk starts here
+                                last_k = q0
                     count, queued, row = _fuse_spherical(
                         linear, params, table, tans, chords, fit, flat_bounds, rng, tile,
-                        base + b * T + cc, cu, q0, rho, bz + M[2, 2] * z, row, nqu, free_value,
-                        at, band_u, band_v, band_d, count, queued,
+                        base + b * T + cc, cu, q0, px, py, rho, bz + M[2, 2] * z, row, nqu,
+                        free_value, at, band_u, band_v, band_d, count, queued,
                     )  # fmt: skip
         return count, queued
     for a in range(S):

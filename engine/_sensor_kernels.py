@@ -218,6 +218,62 @@ def row_tangents(params, table):
     return out
 
 
+#: A spherical sensor's point is put in its quad column by its direction against the
+#: directions of the columns' edges (:func:`column_of_direction`, no ``atan2``) when it lies
+#: at least this much, relative to its distance from the axis, from each edge of its column:
+#: ``atan2``, the column's arithmetic and the edges' ``cos`` and ``sin`` err by about 1e-15.
+COL_DIR_MARGIN = 1e-9
+#: :func:`column_of_direction`'s answer when it cannot say.
+COLUMN_UNSURE = -2
+
+
+@njit(cache=True)
+def column_edges(params):
+    """The directions ``(cos, sin)`` of a spherical sensor's column edges (where ``u`` is an
+    integer, ``0 .. W - 1``), for :func:`column_of_direction`; empty when a column spans a
+    quarter turn or more (then every point goes through ``atan2``)."""
+    W = int(params[P_W])
+    if not (W >= 2 and 0.0 < params[P_DAZ] < 0.5 * math.pi):
+        return np.empty((2, 0))
+    out = np.empty((2, W))
+    for k in range(W):
+        a = params[P_AZ_MIN] + k * params[P_DAZ]
+        out[0, k] = math.cos(a)
+        out[1, k] = math.sin(a)
+    return out
+
+
+@njit(cache=True, inline="always")
+def column_of_direction(edges, x, y, rho, k, wrap):
+    """The quad column of a spherical sensor's point whose sensor-frame ``x`` and ``y`` are
+    given (``rho``: their hypot), as ``quad_index`` finds it from ``project_point``'s ``u``,
+    or ``COLUMN_UNSURE``: within the margin of an edge, more than 8 steps from ``k`` (the
+    last point's column, where the walk starts), or (a sensor that does not wrap) beyond its
+    first or last quad. A direction strictly counter-clockwise of edge ``k`` and clockwise of
+    edge ``k + 1`` (cross products beyond the margin) lies between them: the edges are less
+    than a quarter turn apart."""
+    W = edges.shape[1]
+    last = W - 1 if wrap else W - 2  # the last quad column
+    m = COL_DIR_MARGIN * rho
+    k = min(max(k, 0), last)
+    for _ in range(8):
+        k1 = k + 1 if k + 1 < W else 0
+        c0 = edges[0, k] * y - edges[1, k] * x
+        if c0 <= m:  # not surely counter-clockwise of edge k: a column down
+            if c0 > -m or (k == 0 and not wrap):
+                return COLUMN_UNSURE
+            k = k - 1 if k > 0 else W - 1
+            continue
+        c1 = edges[0, k1] * y - edges[1, k1] * x
+        if c1 >= -m:  # not surely clockwise of edge k + 1: a column up
+            if c1 < m or (k == last and not wrap):
+                return COLUMN_UNSURE
+            k = k1
+            continue
+        return k
+    return COLUMN_UNSURE
+
+
 #: The largest curvature of ``atan``: ``|atan''(t)| = 2 |t| / (1 + t^2)^2``, at most
 #: ``3 sqrt(3) / 8`` (at ``t = 1 / sqrt(3)``).
 _ATAN_CURVATURE = 3.0 * math.sqrt(3.0) / 8.0

@@ -25,7 +25,15 @@ from numba import njit, prange
 from ._memory import Scratch, zeros
 from ._parts import COL_UNKNOWN, _add_block, _fuse_block, _push, _see_part
 from ._sampling import bilinear, prefetch, prefetch_quad, quad_columns, quad_index, quad_origin
-from ._sensor_kernels import CYLINDRICAL, P_H, SPHERICAL, project_point, row_chords, row_tangents
+from ._sensor_kernels import (
+    CYLINDRICAL,
+    P_H,
+    SPHERICAL,
+    column_edges,
+    project_point,
+    row_chords,
+    row_tangents,
+)
 from ._threads import warn_if_slow_threading
 from .certainty import SHAPE_LINEAR, contribution, pack
 from .classify import FREE, OUT, classify_tiles, reach_radius
@@ -103,6 +111,8 @@ def _integrate_kernel(kind: int, shape: int, parts: bool = True):
         use_chords = tans.shape[0] > 1 and 0.0 <= eps1 < 1.0
         chords = row_chords(params, table, tans) if use_chords else np.empty((2, 0))
         fit = np.array([eps0, eps1, falloff])
+        # a tilted pose's voxels find their quad column from their direction where sure
+        edges = column_edges(params) if kind == SPHERICAL else np.empty((2, 0))
         level = M[0, 2] == 0.0 and M[1, 2] == 0.0  # no roll or pitch
         for n in prange(rows.shape[0]):
             row = rows[n]
@@ -198,8 +208,9 @@ def _integrate_kernel(kind: int, shape: int, parts: bool = True):
                 for n_block in range(nblocks):
                     count, queued = _fuse_block(
                         kind, linear, tile, blocks[n_block], T, h, M, c, params, table, tans,
-                        chords, fit, flat_bounds, rng, free_value, at, band_u, band_v, band_d,
-                        slab_y, slab_z, slab_u, slab_v, slab_d, slab_q, cols, count, queued,
+                        chords, fit, edges, flat_bounds, rng, free_value, at, band_u, band_v,
+                        band_d, slab_y, slab_z, slab_u, slab_v, slab_d, slab_q, cols, count,
+                        queued,
                     )  # fmt: skip
             else:
                 slab_y = np.empty(TT)

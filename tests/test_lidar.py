@@ -113,6 +113,62 @@ def test_a_level_columns_rows_from_tangents_are_those_of_atan2(rows: str) -> Non
 
 
 @njit(cache=True)
+def _columns_two_ways(params, edges, wrap, xs, ys, start, out):
+    # per direction: the quad column project_point's u gives (-1 outside the image) and the
+    # one column_of_direction gives, walking from ``start``
+    for m in range(xs.shape[0]):
+        x = xs[m]
+        y = ys[m]
+        u, rho = _k.spherical_column(params, x, y)
+        out[m, 0] = quad_index(_k.SPHERICAL, params, u, 0.0)
+        out[m, 1] = _k.column_of_direction(edges, x, y, rho, start[m], wrap)
+
+
+@pytest.mark.parametrize(("W", "wrap"), [(1024, True), (16, True), (64, False)])
+def test_a_tilted_voxels_column_from_its_direction_is_that_of_atan2(W: int, wrap: bool) -> None:
+    """A tilted pose's voxel finds its quad column from its direction against the columns'
+    edges: where the answer is sure it is the column ``project_point``'s ``u`` gives, also a
+    few ulps and a few margins from every edge and across the turn's wrap; near an edge, far
+    from the walk's start or outside a sensor that does not wrap, it is unsure."""
+    rng = np.random.default_rng(W)
+    if wrap:
+        sensor = SphericalSensor(
+            width=W, height=8, max_range=80.0, el_min=-0.4, el_max=0.1, wrap=True
+        )
+    else:
+        sensor = SphericalSensor(
+            width=W, height=8, max_range=80.0, el_min=-0.4, el_max=0.1, az_min=-1.0, az_max=1.5
+        )
+    _, params, _ = sensor.kernel_args()
+    edges = _k.column_edges(params)
+    assert edges.shape == (2, W)
+    az_min, daz = params[_k.P_AZ_MIN], params[_k.P_DAZ]
+    a_edge = az_min + np.arange(W) * daz
+    steps = (-3, -1.5, -0.5, 0.5, 1.5, 3)
+    near = [a_edge + f * _k.COL_DIR_MARGIN for f in steps]
+    near += [np.nextafter(a_edge, np.inf), np.nextafter(a_edge, -np.inf), a_edge]
+    az = np.concatenate([rng.uniform(-np.pi, np.pi, 30000), *near, [np.pi, -np.pi, 0.0]])
+    az = np.repeat(az, 3)
+    rho = np.tile([0.3, 9.0, 70.0], len(az) // 3)
+    xs, ys = rho * np.cos(az), rho * np.sin(az)
+    xs[:3], ys[:3] = (2.0, -0.0, 0.0), (0.0, 0.0, -1.0)  # on the axes
+    truth = np.empty((len(az), 2), np.int64)
+    _columns_two_ways(params, edges, wrap, xs, ys, np.zeros(len(az), np.int64), truth)
+    start = np.where(truth[:, 0] >= 0, truth[:, 0] + rng.integers(-4, 5, len(az)), 0)
+    start = start % W if wrap else np.clip(start, 0, W - 2)  # within 4 columns of the answer
+    out = np.empty((len(az), 2), np.int64)
+    _columns_two_ways(params, edges, wrap, xs, ys, start, out)
+    sure = out[:, 1] != _k.COLUMN_UNSURE
+    assert np.array_equal(out[sure, 1], out[sure, 0])
+    assert (out[sure, 1] >= 0).all()
+    n_random = 3 * 30000
+    inside = out[:n_random, 0] >= 0
+    assert sure[:n_random][inside].mean() > 0.999  # random directions are not near an edge
+    assert not sure[:n_random][~inside].any()  # outside the image: unsure, atan2 says it
+    assert 0 < (~sure[n_random:]).sum() < 0.7 * (len(az) - n_random)  # the edges' own
+
+
+@njit(cache=True)
 def _band_two_ways(params, table, tans, chords, rng, fit, q_rho, shape, us, ts, rhos, ds, out):
     # per point (column u, tangent t, distance from the axis rho; a voxel at distance d):
     # out[m] = (row, fv - its chord, the chord's bound, the bilinear range, pass 3's
