@@ -14,13 +14,13 @@ import math
 
 from numba import njit
 
-from ._sampling import prefetch_quad, quad_columns, quad_index
+from ._sampling import column_ranges, prefetch_quad, quad_columns, quad_index
 from ._sensor_kernels import (
     COLUMN_UNSURE,
     ROW_OUTSIDE,
     ROW_UNSURE,
     SPHERICAL,
-    _column_from_azimuth,
+    azimuth_column,
     column_of_direction,
     project_point,
     row_of_tangent,
@@ -103,12 +103,7 @@ def _band_outcome(rng, qu, r, u, fv, slack, d, fit, linear):
     # ends of fv's interval; ``alpha > eps + f`` (nothing) and ``alpha < -eps`` (free) only
     # get truer as the range falls, resp. grows (eps = eps0 + eps1 r, 0 <= eps1 < 1), so
     # each is tested at the end of the range's interval where it is least true.
-    qu1 = qu + 1
-    if qu1 == rng.shape[1]:
-        qu1 = 0
-    fu = u - qu
-    top = (1.0 - fu) * rng[r, qu] + fu * rng[r, qu1]
-    bottom = (1.0 - fu) * rng[r + 1, qu] + fu * rng[r + 1, qu1]
+    top, bottom = column_ranges(rng, qu, r, u)  # bilinear's, exactly
     f_lo = max(fv - slack, 0.0)
     f_hi = min(fv + slack, 1.0)
     r_a = top + f_lo * (bottom - top)
@@ -149,7 +144,7 @@ def _fuse_spherical(
         return count, queued, row
     if r == ROW_UNSURE:
         if cu != cu:
-            cu = _column_from_azimuth(params, math.atan2(y, x))  # as spherical_column
+            cu = azimuth_column(params, x, y)
         u, v, d = spherical_in_column(params, table, cu, rho, z)
         q = quad_index(SPHERICAL, params, u, v)
         if q < 0:
@@ -163,7 +158,7 @@ def _fuse_spherical(
         count += 1
     elif d <= flat_bounds[2 * q + 1]:
         if cu != cu:
-            cu = _column_from_azimuth(params, math.atan2(y, x))  # as spherical_column
+            cu = azimuth_column(params, x, y)
         if r >= 0 and chords.shape[1] > 0:
             outcome = _band_outcome(
                 rng, q0, r, cu, (tans[r] - t) * chords[0, r], chords[1, r], d, fit, linear
@@ -247,7 +242,7 @@ def _fuse_block(
                             q0 = k
                             last_k = k
                         else:
-                            cu = _column_from_azimuth(params, math.atan2(py, px))
+                            cu = azimuth_column(params, px, py)
                             q0 = quad_index(kind, params, cu, 0.0)
                             if q0 >= 0:  # the next voxel's walk starts here
                                 last_k = q0

@@ -74,19 +74,25 @@ def quad_index(kind, params, u, v):
 
 
 @njit(cache=True, inline="always")
-def bilinear(rng, qu, qv, u, v):
-    """Bilinear range at ``(u, v)`` in quad ``(qu, qv)`` (columns wrap), the quad known to
-    be valid."""
+def column_ranges(rng, qu, qv, u):
+    """The ranges at column ``u`` on the two rows of quad ``(qu, qv)`` (columns wrap):
+    linear along each row; :func:`bilinear` is linear between them."""
     qu1 = qu + 1
     if qu1 == rng.shape[1]:
         qu1 = 0
     fu = u - qu
+    top = (1.0 - fu) * rng[qv, qu] + fu * rng[qv, qu1]
+    bottom = (1.0 - fu) * rng[qv + 1, qu] + fu * rng[qv + 1, qu1]
+    return top, bottom
+
+
+@njit(cache=True, inline="always")
+def bilinear(rng, qu, qv, u, v):
+    """Bilinear range at ``(u, v)`` in quad ``(qu, qv)`` (columns wrap), the quad known to
+    be valid."""
+    top, bottom = column_ranges(rng, qu, qv, u)
     fv = v - qv
-    r00 = rng[qv, qu]
-    r01 = rng[qv, qu1]
-    r10 = rng[qv + 1, qu]
-    r11 = rng[qv + 1, qu1]
-    return (1.0 - fv) * ((1.0 - fu) * r00 + fu * r01) + fv * ((1.0 - fu) * r10 + fu * r11)
+    return (1.0 - fv) * top + fv * bottom
 
 
 @intrinsic

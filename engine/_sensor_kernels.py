@@ -145,7 +145,7 @@ def project_point(kind, params, table, x, y, z):
         rho = math.sqrt(x * x + y * y)
         if rho == 0.0:
             return nan, nan, nan
-        u = _column_from_azimuth(params, math.atan2(y, x))
+        u = azimuth_column(params, x, y)
         if params[P_LINEAR] != 0.0:
             v = params[P_CYL_CY] - params[P_CYL_FY] * z
         else:
@@ -162,10 +162,17 @@ def project_point(kind, params, table, x, y, z):
 
 
 @njit(cache=True, inline="always")
+def azimuth_column(params, x, y):
+    """The column ``u`` of a spherical or cylindrical sensor's point ``(x, y, z)``, whatever
+    its ``z``, as :func:`project_point` computes it."""
+    return _column_from_azimuth(params, math.atan2(y, x))
+
+
+@njit(cache=True, inline="always")
 def spherical_column(params, x, y):
     """A spherical sensor's column ``u`` and distance from the axis ``rho`` of the point
     ``(x, y, z)`` whatever its ``z``, as :func:`project_point` computes them."""
-    return _column_from_azimuth(params, math.atan2(y, x)), math.sqrt(x * x + y * y)
+    return azimuth_column(params, x, y), math.sqrt(x * x + y * y)
 
 
 @njit(cache=True, inline="always")
