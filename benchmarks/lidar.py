@@ -11,11 +11,14 @@ run, OctoMap (``pyoctomap``, the ``bench`` extra: ``insertPointCloud`` with the 
 and the sensor's max range; no-return pixels as points beyond it, so they carve free space
 as in rangefuse) maps the first ``--octomap-scans`` scans of the shortest street at 10 cm and
 5 cm, and rangefuse maps the same scans in memory for the ratio. Kernels are warmed on one
-scan before each clock starts; the street is rendered before it too.
+scan before each clock starts; the street is rendered before it too. ``--tilt R`` rolls and
+pitches each pose by up to ``R`` radians (the synthetic street's poses are exactly level; a
+vehicle's are not, and the kernel's level shortcut then does not apply).
 
     python benchmarks/lidar.py                    # the issue's table (tens of minutes)
     python benchmarks/lidar.py --quick            # 10 cm, 40 and 160 m, 4 OctoMap scans
     python benchmarks/lidar.py --voxels 0.1 --lengths 40,640 --no-store --octomap-scans 0
+    python benchmarks/lidar.py --voxels 0.1 --lengths 160 --tilt 0.02 --tile-size 32
 """
 
 from __future__ import annotations
@@ -46,11 +49,31 @@ def _max_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def _street(length: float, n_scans: int | None = None) -> list:
-    from rangefuse.engine.synth import NoiseSpec, make_dataset
+def _street(length: float, n_scans: int | None = None, tilt: float = 0.0) -> list:
+    """The street's scans; with ``tilt`` (radians) each pose rolls and pitches by up to that
+    much (a vehicle's sway: roll ``tilt sin(0.9 k + 0.3)``, pitch ``tilt cos(1.3 k)`` at scan
+    ``k``) and the scans are rendered again from those poses, with the same noise model."""
+    import numpy as np
+    from rangefuse.engine import Scan
+    from rangefuse.engine.synth import NoiseSpec, apply_noise, make_dataset, render
 
-    data = make_dataset("street", length_m=length, noise=NoiseSpec(gaussian_m=NOISE_M))
-    return data.scans if n_scans is None else data.scans[:n_scans]
+    noise = NoiseSpec(gaussian_m=NOISE_M)
+    data = make_dataset("street", length_m=length, noise=noise)
+    scans = data.scans if n_scans is None else data.scans[:n_scans]
+    if tilt == 0.0:
+        return scans
+    rng = np.random.default_rng(0)
+    tilted = []
+    for k, (scan_id, scan) in enumerate(scans):
+        roll, pitch = tilt * np.sin(0.9 * k + 0.3), tilt * np.cos(1.3 * k)
+        cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+        R_x = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+        R_y = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+        T = scan.T_W_S.copy()
+        T[:3, :3] = T[:3, :3] @ R_y @ R_x
+        range_m = apply_noise(render(data.scene, data.sensor, T), noise, data.sensor, rng)
+        tilted.append((scan_id, Scan(range_m=range_m, T_W_S=T, sensor=data.sensor)))
+    return tilted
 
 
 def _params(h: float):
@@ -81,7 +104,7 @@ def _child_rangefuse(cfg: dict) -> dict:
     from rangefuse.engine import GridSpec, Volume
 
     h = cfg["voxel"]
-    scans = _street(cfg["length"], cfg.get("n_scans"))
+    scans = _street(cfg["length"], cfg.get("n_scans"), cfg["tilt"])
     data_mb = sum(s.range_m.nbytes for _, s in scans) / 2**20
     _warm(scans, h)
     grid = GridSpec(h, cfg["tile"], "mapping")
@@ -142,7 +165,7 @@ def _world_points(scan) -> tuple:
 def _child_octomap(cfg: dict) -> dict:
     import pyoctomap
 
-    scans = _street(cfg["length"], cfg.get("n_scans"))
+    scans = _street(cfg["length"], cfg.get("n_scans"), cfg["tilt"])
     clouds = [_world_points(s) for _, s in scans]
     data_mb = sum(s.range_m.nbytes for _, s in scans) / 2**20
     max_range = float(scans[0][1].sensor.max_range)
@@ -210,6 +233,10 @@ def main() -> None:
         "--group-scans", type=int, help="most scans per checkpoint in the store runs "
         "(default: storage.groups.GROUP_SCANS, with its other bounds)"
     )  # fmt: skip
+    parser.add_argument(
+        "--tilt", type=float, default=0.0, help="roll and pitch each pose by up to this "
+        "many radians (a vehicle's sway; 0: the level street)"
+    )  # fmt: skip
     parser.add_argument("--tmp", default=None, help="folder for the stores (default: system)")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -228,10 +255,12 @@ def main() -> None:
     if octomap_scans > 0 and importlib.util.find_spec("pyoctomap") is None:
         raise SystemExit("pyoctomap is not importable: pip install -e '.[bench]' (or give "
                          "--octomap-scans 0)")  # fmt: skip
+    if not 0.0 <= args.tilt <= 0.5:
+        raise SystemExit(f"--tilt: give 0 to 0.5 radians, got {args.tilt}")
     if args.group_scans is not None and args.group_scans < 1:
         raise SystemExit(f"--group-scans: give at least 1, got {args.group_scans}")
     base = {"tile": args.tile_size, "cache_mb": args.cache_mb, "tmp": args.tmp,
-            "group_scans": args.group_scans}  # fmt: skip
+            "group_scans": args.group_scans, "tilt": args.tilt}  # fmt: skip
     configs: list[dict] = []
     for h in voxels:
         text = args.lengths or ("40,160" if args.quick else DEFAULT_LENGTHS.get(h, "40,160"))
@@ -256,6 +285,7 @@ def main() -> None:
         f"{NOISE_M} m, tiles {args.tile_size}^3, store cache {args.cache_mb:g} MB, "
         f"{os.cpu_count()} cores"
         + (f", {args.group_scans} scans per store checkpoint" if args.group_scans else "")
+        + (f", poses tilted by up to {args.tilt:g} rad" if args.tilt else ", level poses")
     )
     print(header)
     print("-" * len(header))

@@ -17,9 +17,6 @@ from .zarr_tiles import ZarrTiles
 
 __all__ = ["TileCache", "cache_tiles"]
 
-#: Tiles written per call when the cache writes back (bounds the temporary stack).
-_WRITE_CHUNK = 256
-
 
 class TileCache:
     """Tiles in memory under a byte budget; dirty tiles are staged when evicted.
@@ -89,12 +86,12 @@ class TileCache:
         self._write(victims)
 
     def _write(self, items: list[tuple[int, np.ndarray]]) -> None:
-        for start in range(0, len(items), _WRITE_CHUNK):  # bounded temporary copies
-            part = items[start : start + _WRITE_CHUNK]
-            packed = np.array([p for p, _ in part], np.int64)
-            self.staging.write(unpack_keys(packed), np.stack([t for _, t in part]))
-            self.written.update(packed.tolist())
-            self.writes += len(part)
+        if not items:
+            return
+        packed = np.array([p for p, _ in items], np.int64)
+        self.staging.write(unpack_keys(packed), [t for _, t in items])  # the tiles, not a copy
+        self.written.update(packed.tolist())
+        self.writes += len(items)
 
     def flush(self) -> np.ndarray:
         """Stage every dirty tile; returns the packed keys of every tile staged."""

@@ -363,6 +363,20 @@ def test_lidar_benchmark_smoke(tmp_path) -> None:
     assert rows[0][9] == rows[1][9]  # the same tiles in memory and in the store
     if octomap != "0":
         assert "faster than OctoMap" in out.stdout
+    # --tilt: the street rendered again from rolled and pitched poses
+    tilted = subprocess.run(
+        [sys.executable, str(script), "--voxels", "0.2", "--lengths", "8", "--octomap-scans",
+         "0", "--no-store", "--tilt", "0.05"],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert tilted.returncode == 0, tilted.stderr[-3000:]
+    assert "poses tilted by up to 0.05 rad" in tilted.stdout
+    (row,) = [line.split() for line in tilted.stdout.splitlines() if line.startswith("  0.20")]
+    assert int(row[4]) == 4 and row[9] != rows[0][9]  # other poses reach other tiles
+    bad = subprocess.run(
+        [sys.executable, str(script), "--tilt", "2"], capture_output=True, text=True, timeout=60
+    )
+    assert bad.returncode != 0 and "--tilt: give 0 to 0.5 radians, got 2.0" in bad.stderr
 
 
 def _catalog(tmp_path):
