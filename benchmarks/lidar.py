@@ -249,14 +249,14 @@ def main() -> None:
         voxels = [float(x) for x in args.voxels.split(",")]
     except ValueError:
         raise SystemExit(f"--voxels: not a list of numbers: {args.voxels!r}") from None
+    if not 0.0 <= args.tilt <= 0.5:
+        raise SystemExit(f"--tilt: give 0 to 0.5 radians, got {args.tilt}")
     octomap_scans = args.octomap_scans
     if args.quick:
         voxels, octomap_scans = [0.1], min(octomap_scans, 4)
     if octomap_scans > 0 and importlib.util.find_spec("pyoctomap") is None:
         raise SystemExit("pyoctomap is not importable: pip install -e '.[bench]' (or give "
                          "--octomap-scans 0)")  # fmt: skip
-    if not 0.0 <= args.tilt <= 0.5:
-        raise SystemExit(f"--tilt: give 0 to 0.5 radians, got {args.tilt}")
     if args.group_scans is not None and args.group_scans < 1:
         raise SystemExit(f"--group-scans: give at least 1, got {args.group_scans}")
     base = {"tile": args.tile_size, "cache_mb": args.cache_mb, "tmp": args.tmp,

@@ -282,6 +282,44 @@ def test_depth_images_take_their_json_or_the_metadata_box(server, page, tmp_path
     page.close()
 
 
+def test_a_scene_created_while_a_poll_is_in_flight_stays_selected(server, page):
+    """The page polls the scene list every second. A poll that read the list before a scene
+    was created and answers after the scene was selected must not deselect it (CI once saw
+    the new scene's panel hidden again): the creation waits for a poll read after it."""
+    page.goto(f"{server.url}/#token={server.token}")
+    page.wait_for_selector("#scenes")
+    page.click("#new-scene")
+    page.wait_for_selector("#f-voxel_size")
+    page.fill("#f-name", "made-mid-poll")
+    page.fill("#f-voxel_size", "0.02")
+    held: list = []  # (route, the list as it was read before the creation)
+
+    def hold_one_poll(route) -> None:
+        if route.request.method == "GET" and not held:
+            held.append((route, route.fetch()))
+        else:
+            route.continue_()
+
+    page.route("**/v1/scenes", hold_one_poll)
+    for _ in range(50):  # the next poll (every second) is held
+        if held:
+            break
+        page.wait_for_timeout(100)
+    assert held, "the page did not poll /v1/scenes"
+    assert "made-mid-poll" not in held[0][1].text()
+    page.click("#create-scene")
+    page.wait_for_selector("#status >> text=created scene")  # the POST has answered
+    route, stale = held[0]
+    with page.expect_response("**/v1/jobs?limit=30"):  # the held poll goes on to the jobs
+        route.fulfill(response=stale)
+    page.unroute("**/v1/scenes")
+    page.wait_for_selector(".scene.selected >> text=made-mid-poll", timeout=10_000)
+    page.wait_for_timeout(500)  # the held poll has ended: it did not deselect the scene
+    assert page.is_visible("#scene-panel")
+    assert page.locator(".scene.selected").inner_text().startswith("made-mid-poll")
+    assert not page.errors, page.errors
+
+
 def test_page_without_a_token_asks_for_one(server, browser):
     page = browser.new_page()
     page.goto(f"{server.url}/")

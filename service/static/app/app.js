@@ -410,11 +410,21 @@ async function cancel(id) {
   catch (e) { setStatus("cannot cancel: " + e.message, true); }
 }
 
-let refreshing = false, refreshAgain = false;
-async function refresh() {
-  if (!token) return;
-  if (refreshing) { refreshAgain = true; return; }  // asked mid-refresh: once more after it
-  refreshing = true;
+// One refresh at a time. Asked mid-refresh, it runs once more after the current one, and
+// the caller waits for that one: its scene list was read after the call (a scene just
+// created is in it, so selecting it next is not undone by the older list, which lacks it).
+let refreshing = null, refreshAgain = null;
+function refresh() {
+  if (!token) return Promise.resolve();
+  if (refreshing) {
+    refreshAgain = refreshAgain || refreshing.then(() => { refreshAgain = null; return refresh(); });
+    return refreshAgain;
+  }
+  refreshing = refreshOnce().finally(() => { refreshing = null; });
+  return refreshing;
+}
+
+async function refreshOnce() {
   try {
     state.scenes = await json("/v1/scenes");
     renderScenes();
@@ -444,9 +454,6 @@ async function refresh() {
     if (meshChanged) await loadMesh(!viewer.mesh);
   } catch (e) {
     setStatus(e.message, true);
-  } finally {
-    refreshing = false;
-    if (refreshAgain) { refreshAgain = false; refresh(); }
   }
 }
 
