@@ -369,9 +369,10 @@ class Killer(threading.Thread):
                     continue
                 sent = time.time()
                 run(["docker", "kill", victim])
-                self.killed = {"sent": sent, "at": time.time(), "victim": victim}
-                self.killed.update(tasks=tasks, ran=ran)
-                self.killed.update(job=job["id"], kind=job["kind"], progress=job["progress"])
+                self.killed = {
+                    "sent": sent, "at": time.time(), "victim": victim, "tasks": tasks, "ran": ran,
+                    "job": job["id"], "kind": job["kind"], "progress": job["progress"],
+                }  # fmt: skip
                 self.steps.log(
                     f"docker kill {victim}: it had {tasks} unit(s) of the {job['kind']} job "
                     f"{job['id']} (running for {ran:.1f} s, progress {job['progress']:.2f})"
@@ -480,8 +481,9 @@ class Run:
             after = (job.get("finished_at") or 0.0) - k["at"]
             if after < k["sent"] - k["at"]:
                 raise CheckError(
-                    f"the {k['kind']} job had finished {-after:.2f} s before `docker kill` "
-                    f"returned, before it was called (which took {k['at'] - k['sent']:.2f} s)"
+                    f"the {k['kind']} job had finished before `docker kill` was called "
+                    f"({-after:.2f} s before it returned; the call took "
+                    f"{k['at'] - k['sent']:.2f} s)"
                 )
             mesh = api.mesh(scene)
             if mesh != mesh1:
