@@ -41,7 +41,7 @@ async function api(path, options = {}) {
   try {
     r = await fetch(path, { ...options, headers: { Authorization: "Bearer " + token, ...(options.headers || {}) } });
   } catch (e) {
-    throw new ApiError(0, "cannot reach the service (is rangefuse serve running?)");
+    throw unreachable(e);
   }
   if (r.status === 401) throw new ApiError(401, "the token was not accepted: paste a valid API token above");
   if (!r.ok && r.status !== 304) {
@@ -50,7 +50,14 @@ async function api(path, options = {}) {
   }
   return r;
 }
-const json = async (path, options) => (await api(path, options)).json();
+const json = async (path, options) => {
+  const r = await api(path, options);
+  try { return await r.json(); } catch (e) { throw e.name === "TimeoutError" ? unreachable(e) : e; }
+};
+function unreachable(e) {
+  if (e.name === "TimeoutError") return new ApiError(0, `the service did not answer within ${POLL_TIMEOUT_S} s`);
+  return new ApiError(0, "cannot reach the service (is rangefuse serve running?)");
+}
 
 function el(tag, attrs, ...children) {
   const e = document.createElement(tag);
@@ -413,7 +420,10 @@ async function cancel(id) {
 // One refresh at a time. Asked mid-refresh, it runs once more after the current one, and
 // the caller waits for that one: its scene list was read after the call (a scene just
 // created is in it, so selecting it next is not undone by the older list, which lacks it).
-let refreshing = null, refreshAgain = null;
+// Each poll's reads give up after POLL_TIMEOUT_S: a request that never answers (a stalled
+// proxy, a dropped connection) would otherwise hold every later refresh behind it.
+const POLL_TIMEOUT_S = 10;
+let refreshing = null, refreshAgain = null, pollFailed = null;  // the last poll's failure
 function refresh() {
   if (!token) return Promise.resolve();
   if (refreshing) {
@@ -426,9 +436,10 @@ function refresh() {
 
 async function refreshOnce() {
   try {
-    state.scenes = await json("/v1/scenes");
+    state.scenes = await json("/v1/scenes", { signal: AbortSignal.timeout(POLL_TIMEOUT_S * 1000) });
     renderScenes();
-    const jobs = await json("/v1/jobs?limit=30");
+    const jobs = await json("/v1/jobs?limit=30", { signal: AbortSignal.timeout(POLL_TIMEOUT_S * 1000) });
+    if (pollFailed) { setStatus(`the service answers again (last error: ${pollFailed})`); pollFailed = null; }
     const now = Date.now() / 1000;
     let sceneChanged = false, meshChanged = false;
     for (const j of jobs) {
@@ -453,6 +464,7 @@ async function refreshOnce() {
     if (sceneChanged) await loadScene();
     if (meshChanged) await loadMesh(!viewer.mesh);
   } catch (e) {
+    if (e.status === 0) pollFailed = e.message;
     setStatus(e.message, true);
   }
 }
