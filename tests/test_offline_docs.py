@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -46,15 +48,19 @@ class Browser:
     def __init__(self, offline: bool = True) -> None:
         from websockets.sync.client import connect
 
-        self._profile = tempfile.TemporaryDirectory()
+        self._profile = tempfile.mkdtemp(prefix="rangefuse-chromium-")
         args = [
             CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-            "--no-first-run", "--remote-debugging-port=0", f"--user-data-dir={self._profile.name}",
+            "--no-first-run", "--remote-debugging-port=0", f"--user-data-dir={self._profile}",
         ]  # fmt: skip
         if offline:
             args.append("--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1")
-        self._proc = subprocess.Popen(
-            [*args, "about:blank"], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True
+        self._proc = subprocess.Popen(  # its own process group: close() ends every child
+            [*args, "about:blank"],
+            stderr=subprocess.PIPE,
+            stdout=subprocess.DEVNULL,
+            text=True,
+            start_new_session=True,
         )
         ws_url = None
         deadline = time.time() + 60
@@ -111,10 +117,31 @@ class Browser:
         raise AssertionError(f"not true within {timeout:g} s: {expression}")
 
     def close(self) -> None:
+        """Close Chromium and remove its profile. Chromium's helper processes outlive the
+        browser process by a moment and may still write into the profile (CI once failed on
+        ``Directory not empty: 'Default'``), so the whole process group is ended and the
+        removal retried until it holds."""
+        with contextlib.suppress(Exception):  # ask politely; the answer is not awaited
+            self._ws.send(json.dumps({"id": 0, "method": "Browser.close"}))
         self._connection.close()
-        self._proc.terminate()
-        self._proc.wait(timeout=30)
-        self._profile.cleanup()
+        try:
+            self._proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self._proc.terminate()
+            self._proc.wait(timeout=30)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self._proc.pid, signal.SIGKILL)
+        deadline = time.time() + 30
+        while True:
+            try:
+                shutil.rmtree(self._profile)
+                break
+            except FileNotFoundError:
+                break
+            except OSError:
+                if time.time() > deadline:
+                    raise
+                time.sleep(0.2)
 
 
 @pytest.fixture(scope="module")
