@@ -205,6 +205,34 @@ class TestMemoryTileStore(TileStoreContract):
         assert store.owners(keys) == [frozenset({"b"}), frozenset({"a"}), frozenset({"a"})]
 
 
+class TestMemoryTileStoreInSmallBlocks(TileStoreContract):
+    """The contract with a pool that grows by blocks of 2 tiles: reads and writes that span
+    many blocks, and compaction after deletions."""
+
+    def make(self, tmp_path: Path, tile_size: int) -> TileStore:
+        return MemoryTileStore(tile_size, block_tiles=2)
+
+    def test_the_pool_grows_by_blocks_without_copying_its_tiles(self) -> None:
+        rng = np.random.default_rng(6)
+        store = MemoryTileStore(T, block_tiles=3)
+        keys = _keys(*[(n, 0, 0) for n in range(70)])
+        tiles = np.stack([_tile(rng) for _ in keys])
+        store.write(keys[:60], tiles[:60].copy(), [frozenset({"a"})] * 60)
+        first = store._blocks[0]
+        for n in range(60, 70):  # one tile at a time: blocks of 3
+            store.write(keys[n : n + 1], tiles[n : n + 1].copy(), [frozenset({"a"})])
+        assert [len(b) for b in store._blocks] == [60, 3, 3, 3, 3]
+        assert store._blocks[0] is first  # never copied into a larger array
+        order = rng.permutation(70)
+        np.testing.assert_array_equal(store.read(keys[order]), tiles[order])
+        # 10 of 72 slots used: the pool shrinks to one block of 64
+        store.delete(keys[:60])
+        assert [len(b) for b in store._blocks] == [64]
+        np.testing.assert_array_equal(store.read(keys[60:]), tiles[60:])
+        assert not store.read(keys[:3]).any()
+        assert store.owners(keys[58:62]) == [frozenset()] * 2 + [frozenset({"a"})] * 2
+
+
 class TestZarrTileStore(TileStoreContract):
     model_steps = 25
 
