@@ -25,7 +25,7 @@ __all__ = ["DenseGrid", "MemoryTileStore", "TileReader", "TileStore", "dense_log
 
 #: Refuse to build dense grids above this many voxels (4 GB of float32).
 MAX_DENSE_VOXELS = 1 << 30
-#: Most bytes in one block of :class:`MemoryTileStore`'s pool.
+#: Most bytes of spare room one growth of :class:`MemoryTileStore`'s pool reserves.
 POOL_BLOCK_BYTES = 64 << 20
 
 
@@ -81,12 +81,12 @@ class MemoryTileStore:
     """Tiles in memory: the in-memory twin of the Zarr store.
 
     Voxel data live in a pool of tiles indexed by a dict from key to slot; freed slots are
-    reused. The pool is a list of blocks (arrays of tiles, of at most
-    :data:`POOL_BLOCK_BYTES` once it has grown that far): it grows by a block, never by
-    copying the tiles it holds (doubling one array copied the whole map and held the old
-    array and the new at once: 2.6 GB at 40 k tiles of 16^3 on a 2.5 km drive at 10 cm,
-    docs/lidar.md). It shrinks to one block of twice its tiles when three quarters of it
-    are free. A write is one copy into the pool per block it touches: a 1 cm room batch
+    reused. The pool is a list of blocks (arrays of tiles): it grows by a block as large as
+    the write that needs it or as the pool up to :data:`POOL_BLOCK_BYTES`, whichever is
+    larger, never by copying the tiles it holds (doubling one array copied the whole map and
+    held the old array and the new at once: 2.6 GB at 40 k tiles of 16^3 on a 2.5 km drive
+    at 10 cm, docs/lidar.md). It shrinks to one block of twice its tiles when three quarters
+    of it are free. A write is one copy into the pool per block it touches: a 1 cm room batch
     used to make 6,185 separate 32 KB copies, 1.3 ms per frame.
     """
 
@@ -98,8 +98,7 @@ class MemoryTileStore:
         self._block_tiles = max(1, int(most))
         self._slot: dict[tuple[int, int, int], int] = {}
         self._owners: dict[tuple[int, int, int], frozenset[str]] = {}
-        self._blocks: list[np.ndarray] = []  # each (n, T, T, T) int64
-        self._starts = np.zeros(1, np.int64)  # the first slot of each block, then the capacity
+        self._blocks: list[np.ndarray] = []  # each (n, T, T, T) int64; slots run through them
         self._free: list[int] = []  # the pool's unused slots, taken from the end
 
     def __len__(self) -> int:
@@ -114,27 +113,39 @@ class MemoryTileStore:
         """Slot of each key, -1 where the tile is missing."""
         return np.array([self._slot.get(key, -1) for key in _tuples(keys)], np.int64)
 
-    def _by_block(self, slots: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    def _starts(self) -> np.ndarray:
+        """The first slot of each block, then the pool's capacity."""
+        return np.cumsum([0, *(len(block) for block in self._blocks)], dtype=np.int64)
+
+    def _by_block(
+        self, slots: np.ndarray
+    ) -> list[tuple[np.ndarray, np.ndarray | slice, np.ndarray]]:
         """For each block that holds some of ``slots`` (all valid): the block, the
-        positions in ``slots`` it holds and their rows in it."""
+        positions in ``slots`` it holds (a slice when one block holds them all, so that
+        indexing with it copies nothing) and their rows in it."""
         if len(self._blocks) == 1:
-            return [(self._blocks[0], np.arange(len(slots)), slots)]
-        block = np.searchsorted(self._starts, slots, side="right") - 1
-        out = []
+            return [(self._blocks[0], slice(0, len(slots)), slots)]
+        starts = self._starts()
+        block = np.searchsorted(starts, slots, side="right") - 1
+        out: list[tuple[np.ndarray, np.ndarray | slice, np.ndarray]] = []
         for b in np.unique(block).tolist():
             at = np.flatnonzero(block == b)
-            out.append((self._blocks[b], at, slots[at] - self._starts[b]))
+            out.append((self._blocks[b], at, slots[at] - starts[b]))
         return out
 
     def read(self, keys: np.ndarray) -> np.ndarray:
         T = self.tile_size
         slots = self._slots(keys)
         found = np.flatnonzero(slots >= 0)
+        parts = self._by_block(slots[found])
+        if len(found) == len(slots) and len(parts) == 1:
+            block, _, rows = parts[0]
+            return block[rows]  # one gather
         if len(found) == len(slots):  # filled whole: numpy's memory, as a gather's own
             out = np.empty((len(slots), T, T, T), np.int64)
         else:
             out = zeros((len(slots), T, T, T), np.int64)
-        for block, at, rows in self._by_block(slots[found]):
+        for block, at, rows in parts:
             out[found[at]] = block[rows]
         return out
 
@@ -163,7 +174,6 @@ class MemoryTileStore:
         if take and not self._slot and len(last) == len(tuples) and data.flags.c_contiguous:
             # the first write to an empty store (a batch's fresh tiles): keep the array
             self._blocks = [data]
-            self._starts = np.array([0, len(data)], np.int64)
             self._slot = dict(zip(tuples, range(len(tuples)), strict=True))
             self._free = []
             self._owners = {key: frozenset(own) for key, own in zip(tuples, owners, strict=True)}
@@ -181,15 +191,14 @@ class MemoryTileStore:
             self._owners[key] = frozenset(owners[n])
 
     def _reserve(self, more: int) -> None:
-        """Make room for ``more`` new tiles in the free list: a new block, as large as the
-        pool (up to a block's most) or as ``more`` needs."""
+        """Make room for ``more`` new tiles in the free list: a new block, as large as
+        ``more`` needs or as the pool up to a block's most, whichever is larger."""
         if more <= len(self._free):
             return
-        used = int(self._starts[-1])
+        used = int(self._starts()[-1])
         size = max(more - len(self._free), min(max(used, 64), self._block_tiles))
         T = self.tile_size
         self._blocks.append(zeros((size, T, T, T), np.int64))
-        self._starts = np.append(self._starts, used + size)
         self._free = list(range(used + size - 1, used - 1, -1)) + self._free
 
     def delete(self, keys: np.ndarray) -> None:
@@ -198,7 +207,8 @@ class MemoryTileStore:
             if slot is not None:
                 self._free.append(slot)
             self._owners.pop(key, None)
-        if self._starts[-1] > 64 and 4 * len(self._slot) < self._starts[-1]:
+        capacity = int(self._starts()[-1])
+        if capacity > 64 and 4 * len(self._slot) < capacity:
             self._compact()
 
     def _compact(self) -> None:
@@ -210,7 +220,6 @@ class MemoryTileStore:
         for block, at, rows in self._by_block(np.array([self._slot[k] for k in live], np.int64)):
             pool[at] = block[rows]
         self._blocks = [pool]
-        self._starts = np.array([0, size], np.int64)
         self._slot = {key: n for n, key in enumerate(live)}
         self._free = list(range(size - 1, len(live) - 1, -1))
 
