@@ -1,6 +1,7 @@
 """A long drive: the synthetic street mapped by a 64 x 1024 spherical LiDAR (issue 21).
 
-One scan every 2 m (``rangefuse synth street --length L``), 1 cm Gaussian range noise, mapping
+One scan every 2 m (``rangefuse synth street --length L``; ``--scan-spacing`` for a sparser
+or denser drive), 1 cm Gaussian range noise, mapping
 mode with the command line's defaults at each voxel size. For each run (a fresh child
 process, so peak RSS is its own): time per scan against the street's length, in memory (one
 :meth:`~engine.Volume.add_many`, as ``rangefuse fuse``) and into a store (``--store``:
@@ -19,6 +20,8 @@ vehicle's are not, and the kernel's level shortcut then does not apply).
     python benchmarks/lidar.py --quick            # 10 cm, 40 and 160 m, 4 OctoMap scans
     python benchmarks/lidar.py --voxels 0.1 --lengths 40,640 --no-store --octomap-scans 0
     python benchmarks/lidar.py --voxels 0.1 --lengths 160 --tilt 0.02 --tile-size 32
+    python benchmarks/lidar.py --voxels 0.01 --lengths 1100 --scan-spacing 8 --no-memory \
+        --tile-size 32 --octomap-scans 0 --store-max-length 2000   # a dense grid over 1 TB
 """
 
 from __future__ import annotations
@@ -40,6 +43,8 @@ from _children import run_child
 DEFAULT_LENGTHS = {0.1: "40,160,640,2500", 0.05: "40,160,640", 0.01: "8,24"}
 #: Longest street run into a store at each voxel size by default (the store's runs are slower).
 STORE_MAX_LENGTH = {0.1: 640.0, 0.05: 160.0, 0.01: 24.0}
+#: Metres driven between two scans by default (the synthetic street's own spacing).
+SCAN_SPACING_M = 2.0
 NOISE_M = 0.01
 #: Voxel size of the warm-up (kernels loaded before the clock starts).
 WARM_VOXEL_M = 0.1
@@ -49,16 +54,20 @@ def _max_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def _street(length: float, n_scans: int | None = None, tilt: float = 0.0) -> list:
-    """The street's scans; with ``tilt`` (radians) each pose rolls and pitches by up to that
-    much (a vehicle's sway: roll ``tilt sin(0.9 k + 0.3)``, pitch ``tilt cos(1.3 k)`` at scan
-    ``k``) and the scans are rendered again from those poses, with the same noise model."""
+def _street(
+    length: float, n_scans: int | None = None, tilt: float = 0.0, spacing: float = SCAN_SPACING_M
+) -> list:
+    """The street's scans, one every ``spacing`` metres (at least one); with ``tilt`` (radians)
+    each pose rolls and pitches by up to that much (a vehicle's sway: roll
+    ``tilt sin(0.9 k + 0.3)``, pitch ``tilt cos(1.3 k)`` at scan ``k``) and the scans are
+    rendered again from those poses, with the same noise model."""
     import numpy as np
     from rangefuse.engine import Scan
     from rangefuse.engine.synth import NoiseSpec, apply_noise, make_dataset, render
 
     noise = NoiseSpec(gaussian_m=NOISE_M)
-    data = make_dataset("street", length_m=length, noise=noise)
+    views = max(1, round(length / spacing))
+    data = make_dataset("street", views=views, length_m=length, noise=noise)
     scans = data.scans if n_scans is None else data.scans[:n_scans]
     if tilt == 0.0:
         return scans
@@ -104,7 +113,7 @@ def _child_rangefuse(cfg: dict) -> dict:
     from rangefuse.engine import GridSpec, Volume
 
     h = cfg["voxel"]
-    scans = _street(cfg["length"], cfg.get("n_scans"), cfg["tilt"])
+    scans = _street(cfg["length"], cfg.get("n_scans"), cfg["tilt"], cfg["spacing"])
     data_mb = sum(s.range_m.nbytes for _, s in scans) / 2**20
     _warm(scans, h)
     grid = GridSpec(h, cfg["tile"], "mapping")
@@ -165,7 +174,7 @@ def _world_points(scan) -> tuple:
 def _child_octomap(cfg: dict) -> dict:
     import pyoctomap
 
-    scans = _street(cfg["length"], cfg.get("n_scans"), cfg["tilt"])
+    scans = _street(cfg["length"], cfg.get("n_scans"), cfg["tilt"], cfg["spacing"])
     clouds = [_world_points(s) for _, s in scans]
     data_mb = sum(s.range_m.nbytes for _, s in scans) / 2**20
     max_range = float(scans[0][1].sensor.max_range)
@@ -237,6 +246,10 @@ def main() -> None:
         "--tilt", type=float, default=0.0, help="roll and pitch each pose by up to this "
         "many radians (a vehicle's sway; 0: the level street)"
     )  # fmt: skip
+    parser.add_argument(
+        "--scan-spacing", type=float, default=SCAN_SPACING_M, help="metres driven between two "
+        "scans (default 2: the synthetic street's)"
+    )  # fmt: skip
     parser.add_argument("--tmp", default=None, help="folder for the stores (default: system)")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -251,16 +264,19 @@ def main() -> None:
         raise SystemExit(f"--voxels: not a list of numbers: {args.voxels!r}") from None
     if not 0.0 <= args.tilt <= 0.5:
         raise SystemExit(f"--tilt: give 0 to 0.5 radians, got {args.tilt}")
+    if not 0.1 <= args.scan_spacing <= 100.0:
+        raise SystemExit(f"--scan-spacing: give 0.1 to 100 metres, got {args.scan_spacing}")
+    if args.group_scans is not None and args.group_scans < 1:
+        raise SystemExit(f"--group-scans: give at least 1, got {args.group_scans}")
     octomap_scans = args.octomap_scans
     if args.quick:
         voxels, octomap_scans = [0.1], min(octomap_scans, 4)
     if octomap_scans > 0 and importlib.util.find_spec("pyoctomap") is None:
         raise SystemExit("pyoctomap is not importable: pip install -e '.[bench]' (or give "
                          "--octomap-scans 0)")  # fmt: skip
-    if args.group_scans is not None and args.group_scans < 1:
-        raise SystemExit(f"--group-scans: give at least 1, got {args.group_scans}")
     base = {"tile": args.tile_size, "cache_mb": args.cache_mb, "tmp": args.tmp,
-            "group_scans": args.group_scans, "tilt": args.tilt}  # fmt: skip
+            "group_scans": args.group_scans, "tilt": args.tilt,
+            "spacing": args.scan_spacing}  # fmt: skip
     configs: list[dict] = []
     for h in voxels:
         text = args.lengths or ("40,160" if args.quick else DEFAULT_LENGTHS.get(h, "40,160"))
@@ -281,7 +297,8 @@ def main() -> None:
         f"{'RSS MB':>7} {'data MB':>7}"
     )
     print(
-        f"street, spherical LiDAR 64x1024 (max range 80 m), one scan per 2 m, gaussian noise "
+        f"street, spherical LiDAR 64x1024 (max range 80 m), one scan per "
+        f"{args.scan_spacing:g} m, gaussian noise "
         f"{NOISE_M} m, tiles {args.tile_size}^3, store cache {args.cache_mb:g} MB, "
         f"{os.cpu_count()} cores"
         + (f", {args.group_scans} scans per store checkpoint" if args.group_scans else "")

@@ -18,6 +18,8 @@ from ._sampling import column_ranges, prefetch_quad, quad_columns, quad_index
 from ._sensor_kernels import (
     COLUMN_UNSURE,
     ROW_OUTSIDE,
+    ROW_TAN_MARGIN,
+    ROW_TAN_MAX,
     ROW_UNSURE,
     SPHERICAL,
     azimuth_column,
@@ -123,6 +125,74 @@ def _band_outcome(rng, qu, r, u, fv, slack, d, fit, linear):
     return BAND_UNSURE
 
 
+#: Outcomes of :func:`_run_outcome`.
+RUN_UNSURE, RUN_FREE, RUN_NOTHING = 0, 1, 2
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _run_outcome(linear, tans, chords, fit, flat_bounds, rng, cu, q0, rho, z_a, z_b, nqu, row):
+    # What _fuse_spherical gives each voxel of a level column's run (the S voxels of a
+    # block's column: one column cu, quad column q0 >= 0 and distance from the axis rho;
+    # sensor-frame heights z_a and z_b at its ends, computed as the voxel loop computes
+    # them), when it is the same sure answer for all: RUN_FREE (each takes logit(rho)),
+    # RUN_NOTHING, or RUN_UNSURE (go voxel by voxel); and the quad row the loop would leave.
+    # Every quantity a voxel's tests read is monotone in its height, and rounding is
+    # monotone, so each voxel's lies between the run's ends: its tangent t, its distance
+    # d, and its fraction fv of the row. A test sure at the least favourable end, with the
+    # largest margin of the run, is sure for every voxel of it.
+    t_a = z_a / rho
+    t_b = z_b / rho
+    t_lo = min(t_a, t_b)
+    t_hi = max(t_a, t_b)
+    n = tans.shape[0]
+    steep = max(abs(t_lo), abs(t_hi))
+    if not steep <= ROW_TAN_MAX:
+        return RUN_UNSURE, row
+    margin = ROW_TAN_MARGIN * max(1.0, steep)  # row_of_tangent's, at the steepest voxel
+    if t_lo - tans[0] > margin or tans[n - 1] - t_hi > margin:
+        return RUN_NOTHING, row  # above the first row or below the last throughout
+    r = row_of_tangent(tans, t_lo, row)
+    if r < 0 or not (tans[r] - t_hi > margin and t_lo - tans[r + 1] > margin):
+        return RUN_UNSURE, row  # not one sure row for the whole run
+    q = q0 + r * nqu
+    lo = flat_bounds[2 * q]
+    hi = flat_bounds[2 * q + 1]
+    z_far = max(abs(z_a), abs(z_b))
+    z_near = 0.0 if (z_a < 0.0) != (z_b < 0.0) else min(abs(z_a), abs(z_b))
+    d_max = math.sqrt(rho * rho + z_far * z_far)  # as _fuse_spherical, at either end
+    d_min = math.sqrt(rho * rho + z_near * z_near)
+    if linear and d_max < lo:
+        return RUN_FREE, r
+    if d_min > hi:  # lo <= hi: none is free either
+        return RUN_NOTHING, r
+    if chords.shape[1] == 0:
+        return RUN_UNSURE, r
+    # _band_outcome over the run: fv spans its values at the two ends; its bounds are
+    # tested at the run's extreme distances with twice the margin at the farthest (the
+    # margins cover the rounding of the voxel's own test). A voxel it settles as nothing
+    # cannot be free by the quad's bounds (lo is below every range of the quad), nor one
+    # it settles as free beyond them (hi is above).
+    slack = chords[1, r]
+    top, bottom = column_ranges(rng, q0, r, cu)
+    f_lo = max((tans[r] - t_hi) * chords[0, r] - slack, 0.0)
+    f_hi = min((tans[r] - t_lo) * chords[0, r] + slack, 1.0)
+    r_a = top + f_lo * (bottom - top)
+    r_b = top + f_hi * (bottom - top)
+    m = BAND_MARGIN * (abs(top) + abs(bottom))
+    r_lo = min(r_a, r_b) - m
+    r_hi = max(r_a, r_b) + m
+    m = 2.0 * BAND_MARGIN * (d_max + abs(top) + abs(bottom) + 1.0)
+    eps0 = fit[0]
+    eps1 = fit[1]
+    eps_hi = eps0 + eps1 * r_hi
+    f = fit[2] if fit[2] > 0.0 else eps_hi
+    if d_min - r_hi - eps_hi - f > m:
+        return RUN_NOTHING, r
+    if linear and d_max - r_lo + eps0 + eps1 * r_lo < -m:
+        return RUN_FREE, r
+    return RUN_UNSURE, r
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def _fuse_spherical(
     linear, params, table, tans, chords, fit, flat_bounds, rng, tile, index, cu, q0, x, y, rho,
@@ -210,6 +280,12 @@ def _fuse_block(
         wrap = wraps(kind, params)
         row = 0
         last_k = 0
+        # a level column's run of S voxels is settled at once where it is sure
+        # (_run_outcome), tried only where it spans under half a row's mean tangent step:
+        # longer runs (near the sensor) mostly cross a row, and paid the test for nothing
+        H = tans.shape[0]
+        span = (S - 1) * h
+        step = 0.5 * (tans[0] - tans[H - 1]) / (H - 1) if H > 1 and S > 1 else 0.0
         for a in range(S):
             x = ((i + a) + 0.5) * h
             base = corner + a * TT
@@ -224,6 +300,20 @@ def _fuse_block(
                     cu = cols[_COL_U, n]
                     rho = cols[_COL_RHO, n]
                     q0 = quad_index(kind, params, cu, 0.0)
+                    if q0 >= 0 and span < step * rho:
+                        outcome, row = _run_outcome(
+                            linear, tans, chords, fit, flat_bounds, rng, cu, q0, rho,
+                            bz + M[2, 2] * slab_z[first], bz + M[2, 2] * slab_z[first + S - 1],
+                            nqu, row,
+                        )  # fmt: skip
+                        if outcome == RUN_FREE:
+                            line = base + b * T
+                            for cc in range(S):
+                                tile[line + cc] += free_value
+                            count += S
+                            continue
+                        if outcome == RUN_NOTHING:
+                            continue
                 px = bx
                 py = by
                 for cc in range(S):

@@ -300,12 +300,18 @@ def _tilted(pose: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 @pytest.mark.parametrize(
-    ("case", "h"), [("level", 0.2), ("tilted", 0.2), ("no table", 0.2), ("level", 0.1)]
-)
-def test_the_parts_of_a_lidars_tiles_give_the_bits_of_the_voxel_loop(case: str, h: float) -> None:
+    ("case", "h", "T"),
+    [("level", 0.2, 16), ("tilted", 0.2, 16), ("no table", 0.2, 16), ("level", 0.1, 16),
+     ("level", 0.1, 32), ("level", 0.02, 16)],
+)  # fmt: skip
+def test_the_parts_of_a_lidars_tiles_give_the_bits_of_the_voxel_loop(
+    case: str, h: float, T: int
+) -> None:
     """A spherical scan's kernel settles the parts and sub-parts of a partial tile that it
     sees out of view, behind the surface beyond its reach or free throughout, before any
-    voxel: the same bits and the same informed counts as fusing every voxel of the tile."""
+    voxel, and a level column's run of a block at once (far from the sensor, at 2 cm): the
+    same bits and the same informed counts as fusing every voxel of the tile (at 2 cm, on
+    3,000 of the tiles)."""
     import dataclasses
 
     from rangefuse.engine.allocation import tiles_touched
@@ -316,7 +322,7 @@ def test_the_parts_of_a_lidars_tiles_give_the_bits_of_the_voxel_loop(case: str, 
 
     rng = np.random.default_rng(len(case))
     data = make_dataset("street", length_m=120)
-    grid = GridSpec(h, 16, "mapping")
+    grid = GridSpec(h, T, "mapping")
     params = FusionParams(NoiseModel(eps=2 * h))
     scans = [scan for _, scan in data.scans[10:50:13]]
     if case == "tilted":
@@ -327,7 +333,8 @@ def test_the_parts_of_a_lidars_tiles_give_the_bits_of_the_voxel_loop(case: str, 
         scans = [dataclasses.replace(s, sensor=sensor) for s in scans]
     prepared = [prepare_scan(s, params) for s in scans]
     keys = unique_keys(np.concatenate([tiles_touched(p, grid) for p in prepared]))
-    T = grid.tile_size
+    if len(keys) > 3000:
+        keys = keys[np.sort(rng.choice(len(keys), 3000, replace=False))]
     for scan in prepared:
         status = classify_tiles(scan, grid, keys)
         rows = np.flatnonzero(status != OUT)
