@@ -67,27 +67,10 @@ def _sensor(rows: str) -> SphericalSensor:
     )
 
 
-@pytest.mark.parametrize("rows", ["table", "even"])
-@pytest.mark.parametrize("fit", [(0.2, 0.0, 0.0), (0.05, 0.01, 0.3)])
-def test_a_level_columns_run_settled_at_once_is_what_each_voxel_gets(rows: str, fit) -> None:
-    """Runs of 4 and 8 voxels (a block's column at 16^3 and 32^3 tiles) anywhere in the view,
-    runs that end a hair from a row's edge or from a distance threshold, and runs across the
-    horizon: where ``_run_outcome`` says free or nothing, every voxel of the run gets that
-    voxel by voxel; it says so for most runs away from the edges."""
-    rand = np.random.default_rng(5)
-    sensor = _sensor(rows)
-    _, params, table = sensor.kernel_args()
-    tans = _k.row_tangents(params, table)
-    chords = _k.row_chords(params, table, tans)
-    W, H = 32, len(tans)
-    ranges = rand.uniform(2.0, 80.0, (H, W))
-    ranges[1::3] = ranges[::3][: len(ranges[1::3])]  # quads whose two rows are the same
-    wall = 40.0 + 20.0 * np.sin(np.arange(W // 2) / 3.0)  # half the turn: a smooth wall
-    ranges[:, : W // 2] = wall + rand.uniform(0.0, 1.0, (H, W // 2))
-    ranges[5, 7] = np.nan  # invalid quads
-    fit_a = np.array(fit, np.float64)
-    bounds = quad_bounds_array(_k.SPHERICAL, params, ranges, *fit, 12.0)
-    n = 30000
+def _runs(rand, tans, ranges, bounds, fit, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` runs for :func:`_run_two_ways` (a third random, a third at a row's edge, a third
+    at a distance threshold), and which end within 1e-10 of a row's edge."""
+    H, W = ranges.shape
     cu = rand.uniform(0, W, n)
     rho = rand.uniform(0.5, 80.0, n)
     h = rand.choice([0.005, 0.01, 0.02, 0.05, 0.1], n)
@@ -132,7 +115,33 @@ def test_a_level_columns_run_settled_at_once_is_what_each_voxel_gets(rows: str, 
     shift = np.where(across, rand.uniform(-0.5, 0.5, n) * h, 0.0)
     bz = np.where(at_bound, t * rho - (k + end + 0.5) * h + shift, bz)
     runs = np.stack([cu, rho, bz, k, h, S], axis=1).astype(np.float64)
-    z_a, z_b = bz + (k + 0.5) * h, bz + (k + S - 0.5) * h
+    return runs, at_edge & (np.abs(hair) <= 1e-10)
+
+
+@pytest.mark.parametrize("rows", ["table", "even"])
+@pytest.mark.parametrize("fit", [(0.2, 0.0, 0.0), (0.05, 0.01, 0.3)])
+def test_a_level_columns_run_settled_at_once_is_what_each_voxel_gets(rows: str, fit) -> None:
+    """Runs of 4 and 8 voxels (a block's column at 16^3 and 32^3 tiles) anywhere in the view,
+    runs that end a hair from a row's edge or from a distance threshold, and runs across the
+    horizon: where ``_run_outcome`` says free or nothing, every voxel of the run gets that
+    voxel by voxel; it says so for most runs away from the edges."""
+    rand = np.random.default_rng(5)
+    sensor = _sensor(rows)
+    _, params, table = sensor.kernel_args()
+    tans = _k.row_tangents(params, table)
+    chords = _k.row_chords(params, table, tans)
+    W, H = 32, len(tans)
+    ranges = rand.uniform(2.0, 80.0, (H, W))
+    ranges[1::3] = ranges[::3][: len(ranges[1::3])]  # quads whose two rows are the same
+    wall = 40.0 + 20.0 * np.sin(np.arange(W // 2) / 3.0)  # half the turn: a smooth wall
+    ranges[:, : W // 2] = wall + rand.uniform(0.0, 1.0, (H, W // 2))
+    ranges[5, 7] = np.nan  # invalid quads
+    fit_a = np.array(fit, np.float64)
+    bounds = quad_bounds_array(_k.SPHERICAL, params, ranges, *fit, 12.0)
+    n = 30000
+    runs, near = _runs(rand, tans, ranges, bounds, fit, n)
+    rho, k, h, S = runs[:, 1], runs[:, 3], runs[:, 4], runs[:, 5].astype(int)
+    z_a, z_b = runs[:, 2] + (k + 0.5) * h, runs[:, 2] + (k + S - 0.5) * h
     for shape in (SHAPE_LINEAR, 1):
         out = np.full((n, 9), -9.0)
         _run_two_ways(params, table, tans, chords, fit_a, bounds, ranges, shape == SHAPE_LINEAR,
@@ -152,7 +161,6 @@ def test_a_level_columns_run_settled_at_once_is_what_each_voxel_gets(rows: str, 
         assert (run == RUN_NOTHING).sum() > 1000
         assert ((run == RUN_FREE).sum() > 1000) == (shape == SHAPE_LINEAR)
         # runs whose ends are within the margins of a row's edge are left to the loop
-        near = at_edge & (np.abs(hair) <= 1e-10)
         assert near.sum() > 1000 and (run[near] == RUN_UNSURE).mean() > 0.9
         # and across the horizon both ways
         assert (((z_a < 0) != (z_b < 0)) & (run != RUN_UNSURE)).sum() > 10
