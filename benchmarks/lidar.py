@@ -7,7 +7,10 @@ process, so peak RSS is its own): time per scan against the street's length, in 
 :meth:`~engine.Volume.add_many`, as ``rangefuse fuse``) and into a store (``--store``:
 ``store_scan`` each scan, then ``integrate_pending``, with a tile cache of ``--cache-mb``),
 tiles, bytes on disk, the size of a dense float32 grid of the tiles' bounding box, and the
-peak RSS (which includes the rendered scans themselves: the ``data MB`` column). In the same
+peak RSS (which includes the rendered scans themselves: the ``data MB`` column), and the
+voxel updates per scan (``Mupd/scan``) with the time per update (``ns/upd``): a scan of a
+street shorter than twice the sensor's reach sees less of it, so its time per scan is lower
+for that alone, while the time per update shows what the map's size costs. In the same
 run, OctoMap (``pyoctomap``, the ``bench`` extra: ``insertPointCloud`` with the sensor origin
 and the sensor's max range; no-return pixels as points beyond it, so they carve free space
 as in rangefuse) maps the first ``--octomap-scans`` scans of the shortest street at 10 cm and
@@ -122,7 +125,7 @@ def _child_rangefuse(cfg: dict) -> dict:
     t0 = time.perf_counter()
     if cfg["where"] == "memory":
         volume = Volume(grid, params)
-        volume.add_many(scans)
+        updates = volume.add_many(scans).voxel_updates
         seconds = time.perf_counter() - t0
         keys = volume.tile_keys()
     else:
@@ -134,9 +137,10 @@ def _child_rangefuse(cfg: dict) -> dict:
                 scene.store_scan(scan_id, scan)
             stored = time.perf_counter()
             if cfg.get("group_scans"):
-                scene.integrate_pending(group_scans=cfg["group_scans"])
+                report = scene.integrate_pending(group_scans=cfg["group_scans"])
             else:
-                scene.integrate_pending()
+                report = scene.integrate_pending()
+            updates = report.voxel_updates
             seconds = time.perf_counter() - t0
             out["store_s"] = stored - t0
             out["integrate_s"] = seconds - out["store_s"]
@@ -152,6 +156,7 @@ def _child_rangefuse(cfg: dict) -> dict:
         "dense_gb": _dense_gb(keys, cfg["tile"]),
         "rss_mb": _max_rss_mb(),
         "data_mb": data_mb,
+        "updates": updates,
     }
 
 
@@ -213,8 +218,18 @@ def _row(r: dict) -> str:
         f"{r['voxel']:6.2f} {r['length']:7.0f} {r['tool']:>18} {r['scans']:5d} "
         f"{r['seconds']:8.1f} {per_scan * 1000:8.0f} {1 / per_scan:7.2f} {split:>12} "
         f"{tiles!s:>9} {_fmt(r['disk_mb'], '8.1f'):>8} {_fmt(r['dense_gb'], '9.2f'):>9} "
-        f"{r['rss_mb']:7.0f} {r['data_mb']:7.0f}"
+        f"{r['rss_mb']:7.0f} {r['data_mb']:7.0f}{_per_update(r, per_scan)}"
     )
+
+
+def _per_update(r: dict, per_scan: float) -> str:
+    # the voxel updates a scan makes (millions; a scan of a street shorter than twice the
+    # sensor's reach sees less of it) and the time per update: what the map's size changes
+    updates = r.get("updates")
+    if updates is None:
+        return f" {'-':>9} {'-':>6}"
+    per = updates / r["scans"]
+    return f" {per / 1e6:9.2f} {per_scan * 1e9 / max(per, 1):6.1f}"
 
 
 def _lengths(text: str) -> list[float]:
@@ -294,7 +309,7 @@ def main() -> None:
     header = (
         f"{'voxel':>6} {'length':>7} {'tool':>18} {'scans':>5} {'time s':>8} {'ms/scan':>8} "
         f"{'scans/s':>7} {'store+fuse':>12} {'tiles':>9} {'disk MB':>8} {'dense GB':>9} "
-        f"{'RSS MB':>7} {'data MB':>7}"
+        f"{'RSS MB':>7} {'data MB':>7} {'Mupd/scan':>9} {'ns/upd':>6}"
     )
     print(
         f"street, spherical LiDAR 64x1024 (max range 80 m), one scan per "
