@@ -10,7 +10,10 @@ tiles, bytes on disk, the size of a dense float32 grid of the tiles' bounding bo
 peak RSS (which includes the rendered scans themselves: the ``data MB`` column), and the
 voxel updates per scan (``Mupd/scan``) with the time per update (``ns/upd``): a scan of a
 street shorter than twice the sensor's reach sees less of it, so its time per scan is lower
-for that alone, while the time per update shows what the map's size costs. In the same
+for that alone, while the time per update shows what the map's size costs. A store run also
+gives the share of its integration spent in the fusion kernel (``kernel``; the rest is
+reading, staging and publishing chunks, planning and the catalog) and the tiles it wrote
+per scan (``wr/scan``: a tile is written once per group of scans). In the same
 run, OctoMap (``pyoctomap``, the ``bench`` extra: ``insertPointCloud`` with the sensor origin
 and the sensor's max range; no-return pixels as points beyond it, so they carve free space
 as in rangefuse) maps the first ``--octomap-scans`` scans of the shortest street at 10 cm and
@@ -121,7 +124,7 @@ def _child_rangefuse(cfg: dict) -> dict:
     _warm(scans, h)
     grid = GridSpec(h, cfg["tile"], "mapping")
     params = _params(h)
-    out = {"disk_mb": None, "store_s": None, "integrate_s": None}
+    out: dict = dict.fromkeys(("disk_mb", "store_s", "integrate_s", "fuse_s", "written"))
     t0 = time.perf_counter()
     if cfg["where"] == "memory":
         volume = Volume(grid, params)
@@ -142,6 +145,7 @@ def _child_rangefuse(cfg: dict) -> dict:
                 report = scene.integrate_pending()
             updates = report.voxel_updates
             seconds = time.perf_counter() - t0
+            out["fuse_s"], out["written"] = report.fuse_seconds, report.tiles_written
             out["store_s"] = stored - t0
             out["integrate_s"] = seconds - out["store_s"]
             keys = scene.tile_keys()
@@ -218,8 +222,18 @@ def _row(r: dict) -> str:
         f"{r['voxel']:6.2f} {r['length']:7.0f} {r['tool']:>18} {r['scans']:5d} "
         f"{r['seconds']:8.1f} {per_scan * 1000:8.0f} {1 / per_scan:7.2f} {split:>12} "
         f"{tiles!s:>9} {_fmt(r['disk_mb'], '8.1f'):>8} {_fmt(r['dense_gb'], '9.2f'):>9} "
-        f"{r['rss_mb']:7.0f} {r['data_mb']:7.0f}{_per_update(r, per_scan)}"
+        f"{r['rss_mb']:7.0f} {r['data_mb']:7.0f}{_per_update(r, per_scan)}{_io(r)}"
     )
+
+
+def _io(r: dict) -> str:
+    # a store run: the share of its integration spent in the fusion kernel (the rest is
+    # reading, staging and publishing chunks, planning and the catalog) and the tiles it
+    # wrote per scan (each tile once per group of scans: what the groups save)
+    if r.get("fuse_s") is None:
+        return f" {'-':>6} {'-':>7}"
+    share = 100 * r["fuse_s"] / max(r["integrate_s"], 1e-9)
+    return f" {share:5.0f}% {r['written'] / r['scans']:7.0f}"
 
 
 def _per_update(r: dict, per_scan: float) -> str:
@@ -309,7 +323,8 @@ def main() -> None:
     header = (
         f"{'voxel':>6} {'length':>7} {'tool':>18} {'scans':>5} {'time s':>8} {'ms/scan':>8} "
         f"{'scans/s':>7} {'store+fuse':>12} {'tiles':>9} {'disk MB':>8} {'dense GB':>9} "
-        f"{'RSS MB':>7} {'data MB':>7} {'Mupd/scan':>9} {'ns/upd':>6}"
+        f"{'RSS MB':>7} {'data MB':>7} {'Mupd/scan':>9} {'ns/upd':>6} {'kernel':>6} "
+        f"{'wr/scan':>7}"
     )
     print(
         f"street, spherical LiDAR 64x1024 (max range 80 m), one scan per "

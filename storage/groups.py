@@ -3,7 +3,8 @@
 A tile is read, staged and published once per group however many of the group's scans see
 it, so scans that share tiles (a drive's consecutive scans, the views of one room) share
 those costs. A group's size is bounded by a count, by the pixels its units hold, and by
-the scans' reach: a scan whose sphere does not meet the group's first one starts a new group.
+the scans' reach: a scan farther from the group's first one than :data:`GROUP_SPAN` times
+the sum of their radii starts a new group.
 """
 
 from __future__ import annotations
@@ -16,21 +17,26 @@ from rangefuse.engine.sensors import sensor_from_dict
 from .archive import ScanArchive
 from .catalog import ScanRow
 
-__all__ = ["GROUP_PIXELS", "GROUP_SCANS", "scan_groups"]
+__all__ = ["GROUP_PIXELS", "GROUP_SCANS", "GROUP_SPAN", "scan_groups"]
 
 #: Most scans integrated between two checkpoints.
-GROUP_SCANS = 64
+GROUP_SCANS = 128
 #: Most pixels in a group's scans: each unit of a group holds the scans it fuses.
 GROUP_PIXELS = 2**23
+#: A scan joins a group while its origin lies within this many times the sum of its radius and
+#: the group's first scan's (1: the spheres meet). A tile is written once per group: on a
+#: drive of reach R and spacing s, about (2 R + n s) / n tiles' worth per scan for n scans.
+GROUP_SPAN = 1.5
 
 
 def scan_groups(
     pending: Sequence[ScanRow], archive: ScanArchive, most: int = GROUP_SCANS
 ) -> Iterator[list[str]]:
     """The ids of ``pending`` (in order) in groups: a group takes the next scan while it has
-    fewer than ``most`` scans and :data:`GROUP_PIXELS` pixels, and the scan's sphere meets
-    the sphere of the group's first scan. An unreadable archive entry is a group of its
-    own: its fusion fails, not the groups before it."""
+    fewer than ``most`` scans and :data:`GROUP_PIXELS` pixels, and the scan's origin lies
+    within :data:`GROUP_SPAN` times the sum of its radius and the group's first scan's. An
+    unreadable archive entry is a group of its own: its fusion fails, not the groups before
+    it."""
     group: list[str] = []
     first: ScanRow | None = None
     pixels = 0
@@ -39,7 +45,7 @@ def scan_groups(
         if first is not None and (
             len(group) >= most
             or pixels + n > GROUP_PIXELS
-            or math.dist(first.origin, row.origin) > first.reach_m + row.reach_m
+            or math.dist(first.origin, row.origin) > GROUP_SPAN * (first.reach_m + row.reach_m)
         ):
             yield group
             group, first, pixels = [], None, 0

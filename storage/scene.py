@@ -85,6 +85,9 @@ class SceneReport:
     tiles_written: int = 0
     tiles_created: int = 0
     tiles_deleted: int = 0
+    #: Wall seconds in the fusion kernel, summed over units (the rest of a change's time is
+    #: planning, reading, staging, publishing and the catalog).
+    fuse_seconds: float = 0.0
 
 
 def _around(existing: np.ndarray, keys: np.ndarray) -> np.ndarray:
@@ -241,6 +244,7 @@ class Scene:
         )
         report.scans += len(new_ids)
         report.voxel_updates += updates
+        report.fuse_seconds += sum(r.fuse_seconds for r in results)
         report.tiles_created += int(plan.created.sum())
         report.tiles_written += len(work.written)
 

@@ -368,7 +368,9 @@ def test_lidar_benchmark_smoke(tmp_path) -> None:
     assert [r[2:4] for r in rows[:2]] == [["rangefuse", "memory"], ["rangefuse", "store"]]
     assert all(int(r[4]) == 4 for r in rows[:2])  # one scan per 2 m
     assert rows[0][9] == rows[1][9]  # the same tiles in memory and in the store
-    assert rows[0][-2] == rows[1][-2] and float(rows[0][-2]) > 0  # and the same voxel updates
+    assert rows[0][-4] == rows[1][-4] and float(rows[0][-4]) > 0  # and the same voxel updates
+    assert rows[0][-2:] == ["-", "-"]  # the kernel's share and the tiles written: a store's
+    assert 0 < float(rows[1][-2].rstrip("%")) <= 100 and int(rows[1][-1]) > 0
     if octomap != "0":
         assert "faster than OctoMap" in out.stdout
     # --tilt: the street rendered again from rolled and pitched poses

@@ -28,6 +28,7 @@ from rangefuse.storage import (
     write_dataset,
 )
 from rangefuse.storage.archive import ArchiveError
+from rangefuse.storage.catalog import ScanRow
 from rangefuse.storage.staging import Staging
 from rangefuse.storage.store import DEFAULT_SCENE
 
@@ -126,8 +127,8 @@ def test_adding_later_equals_all_at_once(tmp_path, room):
 
 def test_groups_take_scans_that_share_tiles_within_their_budgets(tmp_path, room, monkeypatch):
     """A checkpoint per group (one progress call each): a group takes the next scan while
-    it has fewer than ``group_scans`` scans, at most GROUP_PIXELS pixels, and the scan's
-    sphere meets the group's first scan's; the bits are those of fusing all at once."""
+    it has fewer than ``group_scans`` scans, at most GROUP_PIXELS pixels, and the scan lies
+    within GROUP_SPAN of the group's first scan; the bits are those of fusing all at once."""
     far = np.eye(4)
     far[0, 3] = 1000.0  # a kilometre away: its sphere meets none of the others'
     moved = [(f"{scan_id}-far", Scan(s.range_m, far @ s.T_W_S, s.sensor, s.noise))
@@ -158,6 +159,32 @@ def test_groups_take_scans_that_share_tiles_within_their_budgets(tmp_path, room,
         with pytest.raises(ArchiveError, match=lost):
             scene.integrate_pending(group_scans=2)
         assert [r.id for r in scene.scan_rows(("fused",))] == [i for i, _ in room.scans[:2]]
+
+
+def test_a_groups_scans_lie_within_its_span_of_the_first(room, monkeypatch):
+    """A drive: a scan stays in the group while its origin lies within GROUP_SPAN times the
+    sum of its radius and the first scan's, up to the count and the pixels."""
+    sensor = room.scans[0][1].sensor.to_dict()
+    h, w = room.scans[0][1].range_m.shape
+
+    class Archive:
+        def placement(self, scan_id):
+            return {"sensor": sensor}
+
+    def sizes(xs, **kwargs) -> list[int]:
+        rows = [ScanRow(f"s{n}", n, None, "stored", (x, 0.0, 0.0), 10.0, "", 0.0)
+                for n, x in enumerate(xs)]  # fmt: skip
+        return [len(g) for g in groups.scan_groups(rows, Archive(), **kwargs)]
+
+    drive = [5.0 * n for n in range(10)]  # 5 m apart, reach 10 m
+    monkeypatch.setattr(groups, "GROUP_SPAN", 1.0)  # the spheres meet: up to 20 m
+    assert sizes(drive) == [5, 5]
+    monkeypatch.setattr(groups, "GROUP_SPAN", 1.5)  # up to 30 m
+    assert sizes(drive) == [7, 3]
+    assert sizes([0.0, 30.0, 30.5]) == [2, 1]
+    assert sizes(drive, most=4) == [4, 4, 2]
+    monkeypatch.setattr(groups, "GROUP_PIXELS", 3 * h * w)
+    assert sizes(drive) == [3, 3, 3, 1]
 
 
 def test_remove_then_re_add_is_exact(tmp_path, room):
