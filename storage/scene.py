@@ -99,15 +99,18 @@ def _around(existing: np.ndarray, keys: np.ndarray) -> np.ndarray:
 
 def _gather(
     units: Sequence[TileUnit], results: Sequence[UnitResult]
-) -> tuple[dict[str, np.ndarray], int]:
-    """The packed keys each scan informs, and the voxel updates, over all units."""
+) -> tuple[dict[str, np.ndarray], int, float]:
+    """The packed keys each scan informs, the voxel updates and the seconds in the fusion
+    kernel, over all units."""
     informed: dict[str, list[np.ndarray]] = {}
     updates = 0
+    fuse_seconds = 0.0
     for unit, result in zip(units, results, strict=True):
         for scan_id, unit_rows in result.informed.items():
             informed.setdefault(scan_id, []).append(pack_keys(unit.keys[unit_rows]))
         updates += result.voxel_updates
-    return {s: np.concatenate(v) for s, v in informed.items()}, updates
+        fuse_seconds += result.fuse_seconds
+    return {s: np.concatenate(v) for s, v in informed.items()}, updates, fuse_seconds
 
 
 def _reach_box(spheres: Sequence[Sphere], grid: GridSpec) -> tuple[np.ndarray, np.ndarray] | None:
@@ -233,7 +236,7 @@ class Scene:
         self, work: _Work, new_ids: list[str], results: list[UnitResult], report: SceneReport
     ) -> None:
         """The checkpoint of a group whose units have all finished (and publish)."""
-        informed, updates = _gather(work.units, results)
+        informed, updates, fuse_seconds = _gather(work.units, results)
         plan = work.plan
         self._checkpoint(
             work.staging,
@@ -244,7 +247,7 @@ class Scene:
         )
         report.scans += len(new_ids)
         report.voxel_updates += updates
-        report.fuse_seconds += sum(r.fuse_seconds for r in results)
+        report.fuse_seconds += fuse_seconds
         report.tiles_created += int(plan.created.sum())
         report.tiles_written += len(work.written)
 
@@ -400,7 +403,7 @@ class Scene:
                              owners=owners)  # fmt: skip
         plan = planned[0]
         work = self._work(planned)
-        _, updates = _gather(work.units, self._run(work.units))
+        _, updates, fuse_seconds = _gather(work.units, self._run(work.units))
         written = work.written
         self._checkpoint(
             work.staging, informed={}, owned={}, changed=pack_keys(plan.keys[written]),
@@ -409,7 +412,7 @@ class Scene:
         self.archive.delete(scan_id)
         return SceneReport(
             scans=1, voxel_updates=updates, tiles_written=len(written),
-            tiles_deleted=len(plan.deleted),
+            tiles_deleted=len(plan.deleted), fuse_seconds=fuse_seconds,
         )  # fmt: skip
 
     # --- recovery -----------------------------------------------------------------------------

@@ -194,13 +194,13 @@ def test_remove_then_re_add_is_exact(tmp_path, room):
     with open_store(tmp_path / "s", grid, PARAMS) as scene:
         _fill(scene, room.scans)
         report = scene.remove(room.scans[2][0])
-        assert report.tiles_written > 0
+        assert report.tiles_written > 0 and report.fuse_seconds > 0
         _same_dense(scene.to_dense(), without.to_dense())
         np.testing.assert_array_equal(scene.tile_keys(), without.tile_keys())
         assert room.scans[2][0] not in scene
         assert room.scans[2][0] not in scene.archive.ids()
         scene.store_scan(*room.scans[2])
-        scene.integrate_pending()
+        assert scene.integrate_pending().fuse_seconds > 0
         _same_dense(scene.to_dense(), full)
 
 
