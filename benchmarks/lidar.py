@@ -139,10 +139,8 @@ def _child_rangefuse(cfg: dict) -> dict:
             for scan_id, scan in scans:
                 scene.store_scan(scan_id, scan)
             stored = time.perf_counter()
-            if cfg.get("group_scans"):
-                report = scene.integrate_pending(group_scans=cfg["group_scans"])
-            else:
-                report = scene.integrate_pending()
+            limits = {k: cfg[k] for k in ("group_scans", "group_pairs") if cfg.get(k)}
+            report = scene.integrate_pending(**limits)
             updates = report.voxel_updates
             seconds = time.perf_counter() - t0
             out["fuse_s"], out["written"] = report.fuse_seconds, report.tiles_written
@@ -272,6 +270,10 @@ def main() -> None:
         "(default: storage.groups.GROUP_SCANS, with its other bounds)"
     )  # fmt: skip
     parser.add_argument(
+        "--group-pairs", type=int, help="most (scan, tile) pairs in a store checkpoint's "
+        "plan (default: storage.groups.GROUP_PAIRS)"
+    )  # fmt: skip
+    parser.add_argument(
         "--tilt", type=float, default=0.0, help="roll and pitch each pose by up to this "
         "many radians (a vehicle's sway; 0: the level street)"
     )  # fmt: skip
@@ -297,6 +299,8 @@ def main() -> None:
         raise SystemExit(f"--scan-spacing: give 0.1 to 100 metres, got {args.scan_spacing}")
     if args.group_scans is not None and args.group_scans < 1:
         raise SystemExit(f"--group-scans: give at least 1, got {args.group_scans}")
+    if args.group_pairs is not None and args.group_pairs < 1:
+        raise SystemExit(f"--group-pairs: give at least 1, got {args.group_pairs}")
     octomap_scans = args.octomap_scans
     if args.quick:
         voxels, octomap_scans = [0.1], min(octomap_scans, 4)
@@ -304,7 +308,7 @@ def main() -> None:
         raise SystemExit("pyoctomap is not importable: pip install -e '.[bench]' (or give "
                          "--octomap-scans 0)")  # fmt: skip
     base = {"tile": args.tile_size, "cache_mb": args.cache_mb, "tmp": args.tmp,
-            "group_scans": args.group_scans, "tilt": args.tilt,
+            "group_scans": args.group_scans, "group_pairs": args.group_pairs, "tilt": args.tilt,
             "spacing": args.scan_spacing}  # fmt: skip
     configs: list[dict] = []
     for h in voxels:
@@ -332,6 +336,7 @@ def main() -> None:
         f"{NOISE_M} m, tiles {args.tile_size}^3, store cache {args.cache_mb:g} MB, "
         f"{os.cpu_count()} cores"
         + (f", {args.group_scans} scans per store checkpoint" if args.group_scans else "")
+        + (f", {args.group_pairs} pairs per store checkpoint" if args.group_pairs else "")
         + (f", poses tilted by up to {args.tilt:g} rad" if args.tilt else ", level poses")
     )
     print(header)

@@ -42,7 +42,7 @@ import numpy as np
 from ._memory import Scratch
 from .allocation import tiles_touched
 from .classify import FREE, OUT, classify_tiles, reach_radius
-from .grid import GridSpec, pack_keys, unique_keys
+from .grid import GridSpec, pack_keys, unique_keys, unpack_keys
 from .scans import PreparedScan
 from .spatial import SphereIndex, TileIndex, box_distance, reaches, shift_for
 
@@ -225,6 +225,7 @@ def plan_add(
     *,
     halo: int = 0,
     scratch: Scratch | None = None,
+    max_pairs: int | None = None,
 ) -> Plan:
     """Plan the fusion of the scans ``new`` into a volume whose tiles are ``existing``
     (int64 (n, 3), sorted) and whose earlier scans are bounded by ``earlier`` (spheres, or a
@@ -236,14 +237,26 @@ def plan_add(
     A new scan's candidates are the tiles its sphere reaches (:func:`tiles_near`, through a
     :class:`~engine.spatial.TileIndex`): it informs nothing farther, so the tiles beyond
     were out of its view. Its work is then what it can reach, not the whole map.
+
+    With ``max_pairs``, the plan takes the longest prefix of ``new`` (one scan at least)
+    whose (scan, tile) pairs stay within it (:class:`_PairCount`): what a plan, its views
+    and the units made from them hold grows with these pairs. The scans taken are the keys
+    of :attr:`Plan.owned`, in order; the caller plans the others next.
     """
     existing = np.asarray(existing, np.int64).reshape(-1, 3)
+    if not isinstance(earlier, SphereIndex):
+        earlier = list(earlier)
+    budget = None if max_pairs is None else _PairCount(grid, existing, earlier, set(new), max_pairs)
     touched: dict[str, np.ndarray] = {}
     spheres: dict[str, Sphere] = {}
     for scan_id in new:
         scan = load(scan_id)
-        touched[scan_id] = tiles_touched(scan, grid, scratch)
-        spheres[scan_id] = Sphere(scan_id, _origin(scan), reach_radius(scan))
+        tiles = tiles_touched(scan, grid, scratch)
+        sphere = Sphere(scan_id, _origin(scan), reach_radius(scan))
+        if budget is not None and not budget.take(sphere, tiles):
+            break
+        touched[scan_id], spheres[scan_id] = tiles, sphere
+    new = list(touched)
     all_touched = unique_keys(np.concatenate([_NO_KEYS, *touched.values()]))
     created_keys = all_touched[~_isin(all_touched, existing)]
     keys = unique_keys(np.concatenate([existing, created_keys]))
@@ -268,6 +281,95 @@ def plan_add(
         steps += [Step(scan_id, backfill) for scan_id in nearby]
     owned = {scan_id: _rows_of(keys, tiles) for scan_id, tiles in touched.items()}
     return Plan(grid, keys, created, steps, halo, owned)
+
+
+class _PairCount:
+    """The (scan, tile) pairs of a plan of the new scans taken so far, counted as they are
+    taken: each scan's allocated tiles (its owned rows), its candidates (every tile, existing
+    or created by any scan taken, that its sphere reaches) and, for every earlier scan whose
+    sphere reaches created tiles, those tiles (a bound on its backfill view). Exact for the
+    first two: a scan taken later adds its created tiles to the candidates of those before.
+    """
+
+    def __init__(
+        self,
+        grid: GridSpec,
+        existing: np.ndarray,
+        earlier: list[Sphere] | SphereIndex,
+        new: set[str],
+        most: int,
+    ) -> None:
+        self.grid = grid
+        self.most = most
+        self.existing = existing
+        self.existing_packed = np.sort(pack_keys(existing))
+        self.index: TileIndex | None = None
+        self.created = _NO_KEYS
+        self.created_packed = np.zeros(0, np.int64)
+        self.earlier = earlier
+        self.new = new
+        self.taken: list[Sphere] = []
+        self.pairs = 0
+
+    def take(self, sphere: Sphere, tiles: np.ndarray) -> bool:
+        """Count the pairs ``sphere``'s scan (allocating ``tiles``) adds; take it unless
+        it brings the count over ``most`` (the first scan is always taken)."""
+        tile_m = self.grid.tile_size_m
+        packed = np.unique(pack_keys(tiles))
+        fresh = ~_sorted_isin(packed, self.existing_packed)
+        fresh &= ~_sorted_isin(packed, self.created_packed)
+        delta_packed = packed[fresh]
+        delta = unpack_keys(delta_packed)
+        created = np.concatenate([self.created, delta])
+        if self.index is None:
+            self.index = TileIndex(self.existing, shift_for(sphere.radius_m, tile_m))
+        added = len(tiles)
+        added += len(self.index.rows_near(sphere.origin, sphere.radius_m, tile_m))
+        added += int(tiles_near(sphere, created, self.grid).sum())
+        if len(delta):
+            added += _pairs_near([*self.taken, *self._earlier_near(delta)], delta, self.grid)
+        if self.taken and self.pairs + added > self.most:
+            return False
+        self.pairs += added
+        self.taken.append(sphere)
+        self.created = created
+        self.created_packed = np.union1d(self.created_packed, delta_packed)
+        return True
+
+    def _earlier_near(self, keys: np.ndarray) -> list[Sphere]:
+        """The earlier scans' spheres that reach the box of ``keys`` (new scans excluded)."""
+        if isinstance(self.earlier, SphereIndex):
+            tile_m = self.grid.tile_size_m
+            lo = keys.min(axis=0) * tile_m
+            hi = (keys.max(axis=0) + 1) * tile_m
+            ids = [s for s in self.earlier.near_box(lo, hi, tile_m) if s not in self.new]
+            return [Sphere(s, *self.earlier.sphere(s)) for s in ids]
+        near = set(scans_near(self.earlier, keys, self.grid)) - self.new
+        return [s for s in self.earlier if s.scan_id in near]
+
+
+def _pairs_near(spheres: Sequence[Sphere], keys: np.ndarray, grid: GridSpec) -> int:
+    """Pairs of a sphere of ``spheres`` and a tile of ``keys`` it reaches (:func:`tiles_near`
+    for each, in blocks of about a million pairs)."""
+    if not spheres or len(keys) == 0:
+        return 0
+    tile_m = grid.tile_size_m
+    origins = np.array([s.origin for s in spheres], np.float64)
+    limit = np.array([s.radius_m for s in spheres], np.float64) + tile_m  # inf: all
+    step = max(1, 2**20 // len(spheres))
+    count = 0
+    for start in range(0, len(keys), step):
+        lo = (keys[start : start + step] * tile_m)[:, None, :]
+        count += int(np.count_nonzero(box_distance(lo, lo + tile_m, origins) <= limit))
+    return count
+
+
+def _sorted_isin(values: np.ndarray, among: np.ndarray) -> np.ndarray:
+    """Mask of ``values`` found in the sorted array ``among``."""
+    if len(among) == 0:
+        return np.zeros(len(values), np.bool_)
+    at = np.minimum(np.searchsorted(among, values), len(among) - 1)
+    return among[at] == values
 
 
 def _origin(scan: PreparedScan) -> tuple[float, float, float]:

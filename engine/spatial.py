@@ -176,6 +176,10 @@ class SphereIndex:
         self._where[scan_id] = (cell, self._seq)
         self._max_radius = max(self._max_radius, float(radius_m))
 
+    def sphere(self, scan_id: str) -> tuple[tuple[float, float, float], float]:
+        """The centre and radius of a sphere held (KeyError for another id)."""
+        return self._spheres[scan_id]
+
     def remove(self, scan_id: str) -> None:
         """Forget a sphere (missing ids are ignored)."""
         where = self._where.pop(scan_id, None)

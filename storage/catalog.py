@@ -399,10 +399,10 @@ class Catalog:
     ) -> None:
         self._db.executemany(
             "INSERT OR REPLACE INTO tile_scans(scene_id, tile, scan_id, owner) VALUES(?,?,?,?)",
-            [
+            (  # one row at a time: a 1 cm scan has about a million
                 (scene_id, t, scan_id, int(o))
                 for t, o in zip(_packed(tiles), np.asarray(owner).tolist(), strict=True)
-            ],
+            ),
         )
 
     def remove_tile_scans(self, scene_id: str, scan_id: str) -> None:

@@ -4,7 +4,8 @@ A tile is read, staged and published once per group however many of the group's 
 it, so scans that share tiles (a drive's consecutive scans, the views of one room) share
 those costs. A group's size is bounded by a count, by the pixels its units hold, and by
 the scans' reach: a scan farther from the group's first one than :data:`GROUP_SPAN` times
-the sum of their radii starts a new group.
+the sum of their radii starts a new group. Its planner then takes the group's scans while
+their (scan, tile) pairs fit :data:`GROUP_PAIRS`.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from rangefuse.engine.sensors import sensor_from_dict
 from .archive import ScanArchive
 from .catalog import ScanRow
 
-__all__ = ["GROUP_PIXELS", "GROUP_SCANS", "GROUP_SPAN", "scan_groups"]
+__all__ = ["GROUP_PAIRS", "GROUP_PIXELS", "GROUP_SCANS", "GROUP_SPAN", "scan_groups"]
 
 #: Most scans integrated between two checkpoints.
 GROUP_SCANS = 128
@@ -27,6 +28,13 @@ GROUP_PIXELS = 2**23
 #: the group's first scan's (1: the spheres meet). A tile is written once per group: on a
 #: drive of reach R and spacing s, about (2 R + n s) / n tiles' worth per scan for n scans.
 GROUP_SPAN = 1.5
+#: Most (scan, tile) pairs in a group's plan: each scan's allocated tiles and the tiles it may
+#: have in view, and the created tiles earlier scans may see (``engine.planner.plan_add``'s
+#: ``max_pairs``). A group's plan, its views and its units hold arrays of these pairs, and
+#: the count does not follow from the others: a 1 cm scan of a street has about a million
+#: tiles of 16^3 in reach, a 10 cm one a few thousand. The planner takes the scans of a
+#: group while they fit; the next group starts with the rest.
+GROUP_PAIRS = 2**25
 
 
 def scan_groups(

@@ -25,7 +25,7 @@ import math
 import os
 import shutil
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,7 +39,7 @@ from rangefuse.engine.volume import dense_logodds
 
 from .archive import ScanArchive
 from .catalog import ScanRow
-from .groups import GROUP_SCANS, scan_groups
+from .groups import GROUP_PAIRS, GROUP_SCANS, scan_groups
 from .mesh_cache import MeshCache
 from .staging import Staging
 from .store import (
@@ -111,6 +111,15 @@ def _gather(
         updates += result.voxel_updates
         fuse_seconds += result.fuse_seconds
     return {s: np.concatenate(v) for s, v in informed.items()}, updates, fuse_seconds
+
+
+def _consumed(views: list[View], position: np.ndarray) -> Iterator[View]:
+    """``views`` with their rows mapped through ``position``, each taken out of the list as
+    it is drawn (a group's views are released while its units are made)."""
+    views.reverse()
+    while views:
+        v = views.pop()
+        yield View(v.scan_id, v.step, position[v.rows], v.free, v.sign)
 
 
 def _reach_box(spheres: Sequence[Sphere], grid: GridSpec) -> tuple[np.ndarray, np.ndarray] | None:
@@ -210,27 +219,36 @@ class Scene:
 
     # --- integration --------------------------------------------------------------------------
     def integrate_pending(
-        self, progress: Progress | None = None, group_scans: int = GROUP_SCANS
+        self,
+        progress: Progress | None = None,
+        group_scans: int = GROUP_SCANS,
+        group_pairs: int = GROUP_PAIRS,
     ) -> SceneReport:
         """Fuse every ``stored`` scan, in groups of scans that share tiles
-        (:func:`~storage.groups.scan_groups`, at most ``group_scans`` each) with a
-        checkpoint after each.
+        (:func:`~storage.groups.scan_groups`, at most ``group_scans`` each, whose plan
+        holds at most ``group_pairs`` (scan, tile) pairs) with a checkpoint after each.
 
         The result is bit-identical to fusing all the scene's scans at once, in any order.
         """
         pending = self.scan_rows(("stored",))
         report = SceneReport()
         done = 0
-        for group in scan_groups(pending, self.archive, group_scans):
-            self._integrate_group(group, report)
-            done += len(group)
+        while done < len(pending):
+            group = next(scan_groups(pending[done:], self.archive, group_scans))
+            done += len(self._integrate_group(group, report, group_pairs))
             if progress is not None:
                 progress(done, len(pending))
         return report
 
-    def _integrate_group(self, new_ids: list[str], report: SceneReport) -> None:
-        work = self._group_work(new_ids)
-        self._commit_group(work, new_ids, self._run(work.units), report)
+    def _integrate_group(
+        self, new_ids: list[str], report: SceneReport, max_pairs: int = GROUP_PAIRS
+    ) -> list[str]:
+        """Fuse the first scans of ``new_ids`` whose plan holds at most ``max_pairs``
+        (scan, tile) pairs (one scan at least); returns their ids."""
+        work = self._group_work(new_ids, max_pairs)
+        taken = list(work.plan.owned)
+        self._commit_group(work, taken, self._run(work.units), report)
+        return taken
 
     def _commit_group(
         self, work: _Work, new_ids: list[str], results: list[UnitResult], report: SceneReport
@@ -251,7 +269,7 @@ class Scene:
         report.tiles_created += int(plan.created.sum())
         report.tiles_written += len(work.written)
 
-    def _group_work(self, new_ids: list[str]) -> _Work:
+    def _group_work(self, new_ids: list[str], max_pairs: int | None = None) -> _Work:
         """The plan of fusing the scans ``new_ids`` and its units of work.
 
         The plan sees the tiles and the earlier scans within reach of the new scans (their
@@ -271,7 +289,7 @@ class Scene:
             )  # fmt: skip
             spheres = [Sphere(r.id, r.origin, r.reach_m) for r in near]
         return self._work(self._plan(kind="add", existing=existing, scans=new_ids,
-                                     spheres=spheres))  # fmt: skip
+                                     spheres=spheres, max_pairs=max_pairs))  # fmt: skip
 
     def _tile_keys_in(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Packed keys of the existing tiles in the box of tile keys ``[lo, hi]``, sorted:
@@ -300,18 +318,13 @@ class Scene:
         rows = np.unique(np.concatenate([np.flatnonzero(plan.created), *(v.rows for v in views)]))
         position = np.full(len(plan.keys), -1, np.int64)
         position[rows] = np.arange(len(rows))
-        local = [
-            View(v.scan_id, v.step, position[v.rows][position[v.rows] >= 0],
-                 v.free[position[v.rows] >= 0], v.sign)
-            for v in views
-        ]  # fmt: skip
         n_parts = max(1, min(self.runner.workers, len(rows)))
         # a staging folder of the attempt's own: a unit of an abandoned attempt that still
         # runs somewhere writes where nothing is published
         self._discard_staging()
         staging = Staging(self.staging_root / uuid.uuid4().hex[:16], self.tiles)
         units = make_units(
-            plan.keys[rows], plan.created[rows], local, n_parts,
+            plan.keys[rows], plan.created[rows], _consumed(views, position), n_parts,
             group_path=str(self.group_path), staging_path=str(staging.folder),
             grid=self.grid.to_dict(), params=self.params.to_dict(),
             cache_mb=self.cache_mb / n_parts,

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
@@ -106,16 +106,20 @@ class PlanUnit:
     owners: dict[int, frozenset[str]] = field(default_factory=dict)
     informing: dict[str, np.ndarray] = field(default_factory=dict)
     halo: int = 1
+    max_pairs: int | None = None
 
 
 def plan_unit(unit: PlanUnit) -> tuple[Plan, list[View]]:
     """The plan and its views (without the per-quad bounds, which stay where they were
-    computed)."""
+    computed, and without its steps' candidates, which the views replace). An ``"add"``
+    with ``max_pairs`` may plan only the first of its scans (``plan_add``): the keys of
+    ``plan.owned``."""
     grid = GridSpec.from_dict(unit.grid)
     load = _Scans(Path(unit.group_path), FusionParams.from_dict(unit.params))
     keys = unpack_keys(np.asarray(unit.existing, np.int64))
     if unit.kind == "add":
-        plan = plan_add(grid, keys, unit.scans, unit.spheres, load, halo=unit.halo)
+        plan = plan_add(grid, keys, unit.scans, unit.spheres, load, halo=unit.halo,
+                        max_pairs=unit.max_pairs)  # fmt: skip
     elif unit.kind == "remove":
         owners = unit.owners
 
@@ -128,7 +132,9 @@ def plan_unit(unit: PlanUnit) -> tuple[Plan, list[View]]:
         plan = plan_rebuild(grid, keys, unit.informing, halo=unit.halo)
     else:
         raise ValueError(f"unknown kind of plan {unit.kind!r}")
-    return plan, [replace(view, bounds=None) for view in plan.views(load)]
+    views = [replace(view, bounds=None) for view in plan.views(load)]
+    plan.steps = [replace(step, candidates=step.candidates[:0]) for step in plan.steps]
+    return plan, views
 
 
 @dataclass(frozen=True)
@@ -173,59 +179,77 @@ def integrate_unit(unit: TileUnit) -> UnitResult:
     archive = ScanArchive(group)
     cache = TileCache(tiles, staging, int(unit.cache_mb * 2**20))
     scans = [prepare_scan(archive.get(scan_id), params) for scan_id, _, _, _ in unit.steps]
+    steps = [_sorted_step(rows, free) for _, rows, free, _ in unit.steps]
+    hits: list[list[np.ndarray]] = [[] for _ in steps]
     n = len(unit.keys)
-    # per step and tile: -1 out of view, 0 partial, 1 free throughout
-    status = np.full((len(scans), n), -1, np.int8)
-    for k, (_, rows, free, _) in enumerate(unit.steps):
-        status[k, rows] = free.astype(np.int8)
-    hit = np.zeros((len(scans), n), np.bool_)
     updates = 0
     fuse_seconds = 0.0
     for start in range(0, n, cache.batch):
-        part = np.arange(start, min(n, start + cache.batch))
-        data = cache.fetch(unit.keys[part], unit.new[part])
+        end = min(n, start + cache.batch)
+        keys = unit.keys[start:end]
+        data = cache.fetch(keys, unit.new[start:end])
         for k, prepared in enumerate(scans):
-            seen = np.flatnonzero(status[k, part] >= 0)
-            if len(seen) == 0:
+            rows, free = steps[k]
+            a, b = np.searchsorted(rows, [start, end]).tolist()
+            if a == b:
                 continue
             t0 = time.perf_counter()
             count = integrate_seen(
-                prepared, grid, unit.keys[part], data, seen, status[k, part[seen]] == 1,
-                unit.steps[k][3],
+                prepared, grid, keys, data, rows[a:b] - start, free[a:b], unit.steps[k][3]
             )  # fmt: skip
             fuse_seconds += time.perf_counter() - t0
-            hit[k, part] = count > 0
+            hits[k].append(np.flatnonzero(count > 0) + start)
             updates += int(count.sum())
-        cache.store(unit.keys[part], data)
+        cache.store(keys, data)
     staging.fsync(unpack_keys(cache.flush()))
-    informed = {scan_id: np.flatnonzero(hit[k]) for k, (scan_id, *_) in enumerate(unit.steps)}
+    informed = {
+        scan_id: np.concatenate([np.zeros(0, np.int64), *hits[k]])
+        for k, (scan_id, *_) in enumerate(unit.steps)
+    }
     return UnitResult(informed=informed, voxel_updates=updates, fuse_seconds=fuse_seconds)
+
+
+def _sorted_step(rows: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A step's rows in increasing order (a batch of tiles is then a slice of them) with
+    their free flags (the planner's rows are sorted already)."""
+    rows = np.asarray(rows)
+    free = np.asarray(free, np.bool_)
+    if len(rows) > 1 and not bool(np.all(rows[1:] > rows[:-1])):
+        order = np.argsort(rows, kind="stable")
+        rows, free = rows[order], free[order]
+    return rows, free
 
 
 def make_units(
     keys: np.ndarray,
     new: np.ndarray,
-    views: Sequence[View],
+    views: Iterable[View],
     n_parts: int,
     **where: Any,
 ) -> list[TileUnit]:
     """Split the tiles ``keys`` (with their ``new`` flags) among ``n_parts`` units by key
-    (a tile always goes to the same part: one writer per tile). ``views`` index ``keys``;
-    ``where`` gives the units' other fields (paths, grid, params, cache budget per unit)."""
+    (a tile always goes to the same part: one writer per tile). ``views`` index ``keys``
+    (drawn once, in order; a unit's rows are int32 where its tiles allow); ``where`` gives
+    the units' other fields (paths, grid, params, cache budget per unit)."""
     n_parts = max(1, min(n_parts, len(keys)))
     part_of = _partition(keys, n_parts)
-    units = []
-    for p in range(n_parts):
-        mine = np.flatnonzero(part_of == p)
-        local = np.full(len(keys), -1, np.int64)
+    local = np.zeros(len(keys), np.int64)
+    mines = [np.flatnonzero(part_of == p) for p in range(n_parts)]
+    for mine in mines:
         local[mine] = np.arange(len(mine))
-        steps = []
-        for view in views:
-            sel = local[view.rows] >= 0
+    row_type = np.int32 if len(keys) <= np.iinfo(np.int32).max else np.int64
+    steps: list[list[tuple[str, np.ndarray, np.ndarray, int]]] = [[] for _ in mines]
+    for view in views:
+        parts = part_of[view.rows]
+        for p in range(n_parts):
+            sel = parts == p
             if sel.any():
-                steps.append((view.scan_id, local[view.rows[sel]], view.free[sel], view.sign))
-        units.append(TileUnit(keys=keys[mine], new=new[mine], steps=steps, **where))
-    return units
+                rows = local[view.rows[sel]].astype(row_type)
+                steps[p].append((view.scan_id, rows, view.free[sel], view.sign))
+    return [
+        TileUnit(keys=keys[mine], new=new[mine], steps=steps[p], **where)
+        for p, mine in enumerate(mines)
+    ]
 
 
 def _partition(keys: np.ndarray, n: int) -> np.ndarray:

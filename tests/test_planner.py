@@ -70,6 +70,42 @@ def test_new_tiles_are_backfilled_by_every_earlier_scan_that_sees_them(scans):
             np.testing.assert_array_equal(backfill[s].candidates, np.flatnonzero(plan.created))
 
 
+def _pairs(plan, earlier) -> int:
+    """What the pair budget counts: owned rows, new scans' candidates, and per earlier
+    scan the created tiles its sphere reaches."""
+    created = plan.created_keys()
+    new = plan.steps[: len(plan.owned)]
+    return (
+        sum(len(rows) for rows in plan.owned.values())
+        + sum(len(step.candidates) for step in new)
+        + sum(int(tiles_near(s, created, GRID).sum()) for s in earlier)
+    )
+
+
+@pytest.mark.parametrize("backfill", [False, True])
+def test_a_pair_budget_takes_the_longest_prefix_that_fits(scans, backfill):
+    """``max_pairs``: the plan of the longest prefix of the new scans whose pairs fit (the
+    same plan as without a budget on that prefix), and one scan at least."""
+    ids = list(scans)
+    first, later = (ids[:2], ids[2:]) if backfill else ([], ids)
+    existing = np.zeros((0, 3), np.int64)
+    if first:
+        existing = unique_keys(np.concatenate([tiles_touched(scans[s], GRID) for s in first]))
+    earlier = [_sphere(s, scans[s]) for s in first]
+    full = [_pairs(plan_add(GRID, existing, later[:k], earlier, scans.__getitem__), earlier)
+            for k in range(1, len(later) + 1)]  # fmt: skip
+    assert full == sorted(full) and full[0] < full[-1]
+    for most, taken in [(full[-1], len(later)), (full[2], 3), (full[2] - 1, 2), (0, 1)]:
+        plan = plan_add(GRID, existing, later, earlier, scans.__getitem__, max_pairs=most)
+        assert list(plan.owned) == later[:taken]
+        alone = plan_add(GRID, existing, later[:taken], earlier, scans.__getitem__)
+        np.testing.assert_array_equal(plan.keys, alone.keys)
+        np.testing.assert_array_equal(plan.created, alone.created)
+        assert [s.scan_id for s in plan.steps] == [s.scan_id for s in alone.steps]
+        for a, b in zip(plan.steps, alone.steps, strict=True):
+            np.testing.assert_array_equal(a.candidates, b.candidates)
+
+
 def test_views_with_a_halo_hold_the_views_without(scans):
     ids = list(scans)[:2]
     for halo in (0, 1):

@@ -128,7 +128,8 @@ def test_adding_later_equals_all_at_once(tmp_path, room):
 def test_groups_take_scans_that_share_tiles_within_their_budgets(tmp_path, room, monkeypatch):
     """A checkpoint per group (one progress call each): a group takes the next scan while
     it has fewer than ``group_scans`` scans, at most GROUP_PIXELS pixels, and the scan lies
-    within GROUP_SPAN of the group's first scan; the bits are those of fusing all at once."""
+    within GROUP_SPAN of the group's first scan, and its planner takes them while their
+    pairs fit GROUP_PAIRS; the bits are those of fusing all at once."""
     far = np.eye(4)
     far[0, 3] = 1000.0  # a kilometre away: its sphere meets none of the others'
     moved = [(f"{scan_id}-far", Scan(s.range_m, far @ s.T_W_S, s.sensor, s.noise))
@@ -150,6 +151,8 @@ def test_groups_take_scans_that_share_tiles_within_their_budgets(tmp_path, room,
     h, w = room.scans[0][1].range_m.shape
     monkeypatch.setattr(groups, "GROUP_PIXELS", 2 * h * w)
     assert checkpoints(tmp_path / "c") == [2, 3, 4, 6, 7, 8]
+    # a group's planner takes its scans while their (scan, tile) pairs fit GROUP_PAIRS
+    assert checkpoints(tmp_path / "e", group_pairs=1) == [1, 2, 3, 4, 5, 6, 7, 8]
     # an unreadable archive entry fails its own group, not the groups before it
     with open_store(tmp_path / "d", _grid(), PARAMS) as scene:
         for item in room.scans[:3]:
