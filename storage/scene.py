@@ -25,7 +25,7 @@ import math
 import os
 import shutil
 import uuid
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -97,20 +97,29 @@ def _around(existing: np.ndarray, keys: np.ndarray) -> np.ndarray:
     return np.isin(pack_keys(existing), pack_keys(wanted))
 
 
-def _gather(
-    units: Sequence[TileUnit], results: Sequence[UnitResult]
-) -> tuple[dict[str, np.ndarray], int, float]:
-    """The packed keys each scan informs, the voxel updates and the seconds in the fusion
-    kernel, over all units."""
-    informed: dict[str, list[np.ndarray]] = {}
-    updates = 0
-    fuse_seconds = 0.0
-    for unit, result in zip(units, results, strict=True):
-        for scan_id, unit_rows in result.informed.items():
-            informed.setdefault(scan_id, []).append(pack_keys(unit.keys[unit_rows]))
-        updates += result.voxel_updates
-        fuse_seconds += result.fuse_seconds
-    return {s: np.concatenate(v) for s, v in informed.items()}, updates, fuse_seconds
+def _totals(results: Sequence[UnitResult]) -> tuple[int, float]:
+    """The voxel updates and the seconds in the fusion kernel, over all units."""
+    return sum(r.voxel_updates for r in results), sum(r.fuse_seconds for r in results)
+
+
+def _tile_scan_rows(
+    unit_keys: Sequence[np.ndarray], results: Sequence[UnitResult], plan: Plan
+) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
+    """The catalog's rows of a group, one scan at a time (by id): the packed keys of the
+    tiles the scan informs (from the units' results, which give them up as they go) or owns
+    (from the plan), sorted, and whether it owns each. A group's pairs are never all
+    packed at once."""
+    none = np.zeros(0, np.int64)
+    for scan_id in sorted({s for r in results for s in r.informed} | set(plan.owned)):
+        hit = [
+            pack_keys(keys[r.informed.pop(scan_id)])
+            for keys, r in zip(unit_keys, results, strict=True)
+            if scan_id in r.informed
+        ]
+        own = pack_keys(plan.keys[plan.owned[scan_id]]) if scan_id in plan.owned else none
+        tiles = np.union1d(np.concatenate([none, *hit]), own)
+        if len(tiles):
+            yield scan_id, tiles, np.isin(tiles, own)
 
 
 def _consumed(views: list[View], position: np.ndarray) -> Iterator[View]:
@@ -254,12 +263,13 @@ class Scene:
         self, work: _Work, new_ids: list[str], results: list[UnitResult], report: SceneReport
     ) -> None:
         """The checkpoint of a group whose units have all finished (and publish)."""
-        informed, updates, fuse_seconds = _gather(work.units, results)
+        updates, fuse_seconds = _totals(results)
         plan = work.plan
+        unit_keys = [unit.keys for unit in work.units]
+        work.units.clear()  # they ran: their steps go before the catalog's rows are made
         self._checkpoint(
             work.staging,
-            informed=informed,
-            owned={s: pack_keys(plan.keys[rows]) for s, rows in plan.owned.items()},
+            _tile_scan_rows(unit_keys, results, plan),
             fused=new_ids,
             changed=pack_keys(plan.keys[work.written]),
         )
@@ -350,27 +360,23 @@ class Scene:
     def _checkpoint(
         self,
         staging: Staging,
-        informed: dict[str, np.ndarray],
-        owned: dict[str, np.ndarray],
+        rows: Iterable[tuple[str, np.ndarray, np.ndarray]] = (),
         fused: Sequence[str] = (),
         changed: np.ndarray | None = None,
         deleted: np.ndarray | None = None,
         removed: str | None = None,
     ) -> None:
         """Stage the deletions, commit the catalog in one transaction (the units have staged
-        and fsynced their tiles), then publish the staged chunks."""
+        and fsynced their tiles; ``rows``: per scan, the packed keys of the tiles it informs
+        or owns and whether it owns each), then publish the staged chunks."""
         none = np.zeros(0, np.int64)
         deleted = none if deleted is None else deleted
         if len(deleted):
             staging.delete(unpack_keys(deleted))
             staging.fsync(unpack_keys(deleted))
         with self.catalog.transaction():
-            for scan_id in sorted(set(informed) | set(owned)):
-                hit = informed.get(scan_id, none)
-                own = owned.get(scan_id, none)
-                tiles = np.union1d(hit, own)
-                if len(tiles):
-                    self.catalog.add_tile_scans(self.scene_id, scan_id, tiles, np.isin(tiles, own))
+            for scan_id, tiles, owner in rows:
+                self.catalog.add_tile_scans(self.scene_id, scan_id, tiles, owner)
             if removed is not None:
                 self.catalog.remove_tile_scans(self.scene_id, removed)
                 self.catalog.delete_scan(self.scene_id, removed)
@@ -416,10 +422,10 @@ class Scene:
                              owners=owners)  # fmt: skip
         plan = planned[0]
         work = self._work(planned)
-        _, updates, fuse_seconds = _gather(work.units, self._run(work.units))
+        updates, fuse_seconds = _totals(self._run(work.units))
         written = work.written
         self._checkpoint(
-            work.staging, informed={}, owned={}, changed=pack_keys(plan.keys[written]),
+            work.staging, changed=pack_keys(plan.keys[written]),
             deleted=pack_keys(plan.deleted), removed=scan_id,
         )  # fmt: skip
         self.archive.delete(scan_id)
@@ -464,7 +470,7 @@ class Scene:
         )  # fmt: skip
         work = self._work(planned)
         self._run(work.units)
-        self._checkpoint(work.staging, informed={}, owned={}, changed=live, deleted=tiles[~owned])
+        self._checkpoint(work.staging, changed=live, deleted=tiles[~owned])
 
     # --- reading ------------------------------------------------------------------------------
     def tile_keys(self) -> np.ndarray:

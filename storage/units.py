@@ -198,12 +198,12 @@ def integrate_unit(unit: TileUnit) -> UnitResult:
                 prepared, grid, keys, data, rows[a:b] - start, free[a:b], unit.steps[k][3]
             )  # fmt: skip
             fuse_seconds += time.perf_counter() - t0
-            hits[k].append(np.flatnonzero(count > 0) + start)
+            hits[k].append((np.flatnonzero(count > 0) + start).astype(rows.dtype))
             updates += int(count.sum())
         cache.store(keys, data)
     staging.fsync(unpack_keys(cache.flush()))
     informed = {
-        scan_id: np.concatenate([np.zeros(0, np.int64), *hits[k]])
+        scan_id: np.concatenate([steps[k][0][:0], *hits[k]])
         for k, (scan_id, *_) in enumerate(unit.steps)
     }
     return UnitResult(informed=informed, voxel_updates=updates, fuse_seconds=fuse_seconds)
