@@ -270,9 +270,8 @@ def main() -> None:
         "(default: storage.groups.GROUP_SCANS, with its other bounds)"
     )  # fmt: skip
     parser.add_argument(
-        "--group-pairs", type=int, help="most (scan, tile) pairs in a store checkpoint's "
-        "plan (default: storage.groups.GROUP_PAIRS)"
-    )  # fmt: skip
+        "--group-pairs", type=int, help="most (scan, tile) pairs per store checkpoint"
+    )
     parser.add_argument(
         "--tilt", type=float, default=0.0, help="roll and pitch each pose by up to this "
         "many radians (a vehicle's sway; 0: the level street)"

@@ -34,7 +34,7 @@ GROUP_SPAN = 1.5
 #: the count does not follow from the others: a 1 cm scan of a street has about a million
 #: tiles of 16^3 in reach, a 10 cm one a few thousand. The planner takes the scans of a
 #: group while they fit; the next group starts with the rest.
-GROUP_PAIRS = 2**25
+GROUP_PAIRS = 2**24
 
 
 def scan_groups(

@@ -25,7 +25,7 @@ import math
 import os
 import shutil
 import uuid
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -59,10 +59,12 @@ from .units import (
     Runner,
     TileUnit,
     UnitResult,
+    consumed_views,
     integrate_unit,
     make_units,
     mesh_unit,
     plan_unit,
+    tile_scan_rows,
 )
 from .zarr_tiles import ZarrTiles
 
@@ -100,35 +102,6 @@ def _around(existing: np.ndarray, keys: np.ndarray) -> np.ndarray:
 def _totals(results: Sequence[UnitResult]) -> tuple[int, float]:
     """The voxel updates and the seconds in the fusion kernel, over all units."""
     return sum(r.voxel_updates for r in results), sum(r.fuse_seconds for r in results)
-
-
-def _tile_scan_rows(
-    unit_keys: Sequence[np.ndarray], results: Sequence[UnitResult], plan: Plan
-) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
-    """The catalog's rows of a group, one scan at a time (by id): the packed keys of the
-    tiles the scan informs (from the units' results, which give them up as they go) or owns
-    (from the plan), sorted, and whether it owns each. A group's pairs are never all
-    packed at once."""
-    none = np.zeros(0, np.int64)
-    for scan_id in sorted({s for r in results for s in r.informed} | set(plan.owned)):
-        hit = [
-            pack_keys(keys[r.informed.pop(scan_id)])
-            for keys, r in zip(unit_keys, results, strict=True)
-            if scan_id in r.informed
-        ]
-        own = pack_keys(plan.keys[plan.owned[scan_id]]) if scan_id in plan.owned else none
-        tiles = np.union1d(np.concatenate([none, *hit]), own)
-        if len(tiles):
-            yield scan_id, tiles, np.isin(tiles, own)
-
-
-def _consumed(views: list[View], position: np.ndarray) -> Iterator[View]:
-    """``views`` with their rows mapped through ``position``, each taken out of the list as
-    it is drawn (a group's views are released while its units are made)."""
-    views.reverse()
-    while views:
-        v = views.pop()
-        yield View(v.scan_id, v.step, position[v.rows], v.free, v.sign)
 
 
 def _reach_box(spheres: Sequence[Sphere], grid: GridSpec) -> tuple[np.ndarray, np.ndarray] | None:
@@ -269,7 +242,7 @@ class Scene:
         work.units.clear()  # they ran: their steps go before the catalog's rows are made
         self._checkpoint(
             work.staging,
-            _tile_scan_rows(unit_keys, results, plan),
+            tile_scan_rows(unit_keys, results, plan),
             fused=new_ids,
             changed=pack_keys(plan.keys[work.written]),
         )
@@ -334,7 +307,7 @@ class Scene:
         self._discard_staging()
         staging = Staging(self.staging_root / uuid.uuid4().hex[:16], self.tiles)
         units = make_units(
-            plan.keys[rows], plan.created[rows], _consumed(views, position), n_parts,
+            plan.keys[rows], plan.created[rows], consumed_views(views, position), n_parts,
             group_path=str(self.group_path), staging_path=str(staging.folder),
             grid=self.grid.to_dict(), params=self.params.to_dict(),
             cache_mb=self.cache_mb / n_parts,

@@ -53,10 +53,12 @@ __all__ = [
     "Runner",
     "TileUnit",
     "UnitResult",
+    "consumed_views",
     "integrate_unit",
     "make_units",
     "mesh_unit",
     "plan_unit",
+    "tile_scan_rows",
 ]
 
 Item = TypeVar("Item")
@@ -250,6 +252,35 @@ def make_units(
         TileUnit(keys=keys[mine], new=new[mine], steps=steps[p], **where)
         for p, mine in enumerate(mines)
     ]
+
+
+def consumed_views(views: list[View], position: np.ndarray) -> Iterator[View]:
+    """``views`` with their rows mapped through ``position``, each taken out of the list as
+    it is drawn (a group's views are released while its units are made)."""
+    views.reverse()
+    while views:
+        v = views.pop()
+        yield View(v.scan_id, v.step, position[v.rows], v.free, v.sign)
+
+
+def tile_scan_rows(
+    unit_keys: Sequence[np.ndarray], results: Sequence[UnitResult], plan: Plan
+) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
+    """The catalog's rows of a group, one scan at a time (by id): the packed keys of the
+    tiles the scan informs (from the units' results, which give them up as they go) or owns
+    (from the plan), sorted, and whether it owns each. A group's pairs are never all
+    packed at once."""
+    none = np.zeros(0, np.int64)
+    for scan_id in sorted({s for r in results for s in r.informed} | set(plan.owned)):
+        hit = [
+            pack_keys(keys[r.informed.pop(scan_id)])
+            for keys, r in zip(unit_keys, results, strict=True)
+            if scan_id in r.informed
+        ]
+        own = pack_keys(plan.keys[plan.owned[scan_id]]) if scan_id in plan.owned else none
+        tiles = np.union1d(np.concatenate([none, *hit]), own)
+        if len(tiles):
+            yield scan_id, tiles, np.isin(tiles, own)
 
 
 def _partition(keys: np.ndarray, n: int) -> np.ndarray:
