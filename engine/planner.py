@@ -304,8 +304,7 @@ class _PairCount:
         self.existing = existing
         self.existing_packed = np.sort(pack_keys(existing))
         self.index: TileIndex | None = None
-        self.created = _NO_KEYS
-        self.created_packed = np.zeros(0, np.int64)
+        self.created_packed = np.zeros(0, np.int64)  # sorted
         self.earlier = earlier
         self.new = new
         self.taken: list[Sphere] = []
@@ -320,7 +319,8 @@ class _PairCount:
         fresh &= ~_sorted_isin(packed, self.created_packed)
         delta_packed = packed[fresh]
         delta = unpack_keys(delta_packed)
-        created = np.concatenate([self.created, delta])
+        created_packed = np.union1d(self.created_packed, delta_packed)
+        created = unpack_keys(created_packed)
         if self.index is None:
             self.index = TileIndex(self.existing, shift_for(sphere.radius_m, tile_m))
         added = len(tiles)
@@ -332,8 +332,7 @@ class _PairCount:
             return False
         self.pairs += added
         self.taken.append(sphere)
-        self.created = created
-        self.created_packed = np.union1d(self.created_packed, delta_packed)
+        self.created_packed = created_packed
         return True
 
     def _earlier_near(self, keys: np.ndarray) -> list[Sphere]:
