@@ -16,7 +16,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -28,7 +28,12 @@ __all__ = [
     "SceneRow",
 ]
 
-CATALOG_VERSION = 1
+#: Version 2 (docs/storage.md, "Catalog version 2"): ``tile_scans`` rows hold integers (the
+#: scene's number in ``scene_nums``, the scan's in ``scan_nums``) instead of the ids' text;
+#: a version-1 catalog is upgraded when it is opened.
+CATALOG_VERSION = 2
+#: SQLite's page cache per connection (KiB): the checkpoint inserts a row per (scan, tile).
+_CACHE_KIB = 16384
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -43,10 +48,10 @@ CREATE TABLE IF NOT EXISTS scans(
 CREATE UNIQUE INDEX IF NOT EXISTS scans_seq ON scans(scene_id, seq);
 CREATE INDEX IF NOT EXISTS scans_origin ON scans(scene_id, ox);
 CREATE INDEX IF NOT EXISTS scans_reach ON scans(scene_id, reach_m);
-CREATE TABLE IF NOT EXISTS tile_scans(
-    scene_id TEXT NOT NULL, tile INTEGER NOT NULL, scan_id TEXT NOT NULL,
-    owner INTEGER NOT NULL, PRIMARY KEY(scene_id, tile, scan_id)) WITHOUT ROWID;
-CREATE INDEX IF NOT EXISTS tile_scans_scan ON tile_scans(scene_id, scan_id);
+CREATE TABLE IF NOT EXISTS scene_nums(num INTEGER PRIMARY KEY, id TEXT NOT NULL UNIQUE);
+CREATE TABLE IF NOT EXISTS scan_nums(
+    num INTEGER PRIMARY KEY, scene INTEGER NOT NULL, id TEXT NOT NULL, UNIQUE(scene, id));
+{tile_scans}
 CREATE TABLE IF NOT EXISTS journal(
     scene_id TEXT NOT NULL, tile INTEGER NOT NULL, PRIMARY KEY(scene_id, tile)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS publishing(scene_id TEXT PRIMARY KEY, attempt TEXT NOT NULL);
@@ -58,6 +63,13 @@ CREATE TABLE IF NOT EXISTS mesh_cache(
     epoch INTEGER NOT NULL, data BLOB NOT NULL,
     PRIMARY KEY(scene_id, tile, options)) WITHOUT ROWID;
 """
+_TILE_SCANS = """
+CREATE TABLE IF NOT EXISTS tile_scans(
+    scene INTEGER NOT NULL, tile INTEGER NOT NULL, scan INTEGER NOT NULL,
+    owner INTEGER NOT NULL, PRIMARY KEY(scene, tile, scan)) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS tile_scans_scan ON tile_scans(scene, scan);
+"""
+_SCHEMA = _SCHEMA.replace("{tile_scans}", _TILE_SCANS)
 
 #: Columns added after version 1 was released, ``(table, column, declaration)``: a catalog
 #: written before them gains them when it is opened (NULL in its existing rows).
@@ -102,6 +114,9 @@ class ScanRow:
     far_ranges: int | None = None
 
 
+_Item = TypeVar("_Item")
+
+
 def _packed(tiles: np.ndarray | Sequence[int]) -> list[int]:
     return [int(t) for t in np.asarray(tiles, np.int64).reshape(-1)]
 
@@ -115,21 +130,88 @@ class Catalog:
             self._db = sqlite3.connect(self.path, isolation_level=None, timeout=30.0)
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")
+            self._db.execute(f"PRAGMA cache_size=-{_CACHE_KIB}")
             self._db.executescript(_SCHEMA)
             self._add_columns()
             row = self._db.execute("SELECT value FROM meta WHERE key='version'").fetchone()
         except sqlite3.DatabaseError as exc:
             raise CatalogError(f"{self.path}: not a rangefuse catalog ({exc})") from None
+        self._depth = 0
+        self._nums: dict[str, int] = {}
         if row is None:
             self._db.execute(
                 "INSERT INTO meta(key, value) VALUES('version', ?)", (str(CATALOG_VERSION),)
             )
+        elif row[0] == "1":
+            self._upgrade_from_1()
         elif row[0] != str(CATALOG_VERSION):
             raise CatalogError(
-                f"{self.path}: catalog version {row[0]}, this rangefuse reads version "
-                f"{CATALOG_VERSION}"
+                f"{self.path}: catalog version {row[0]}, this rangefuse reads versions 1 "
+                f"(upgraded when opened) and {CATALOG_VERSION}"
             )
-        self._depth = 0
+
+    def _upgrade_from_1(self) -> None:
+        """Rewrite a version-1 ``tile_scans`` (the scene's and the scan's ids as text in
+        every row) with integers, in one transaction; a crash leaves version 1."""
+        with self.transaction():
+            row = self._db.execute("SELECT value FROM meta WHERE key='version'").fetchone()
+            if row[0] != "1":  # another process upgraded it first
+                return
+            self._db.execute("INSERT OR IGNORE INTO scene_nums(id) SELECT id FROM scenes")
+            columns = {r[1] for r in self._db.execute("PRAGMA table_info(tile_scans)")}
+            if "scene_id" in columns:  # the version-1 table (not one this open just made)
+                self._db.execute("DROP INDEX IF EXISTS tile_scans_scan")
+                self._db.execute("ALTER TABLE tile_scans RENAME TO tile_scans_v1")
+                for statement in _TILE_SCANS.split(";"):
+                    if statement.strip():
+                        self._db.execute(statement)
+                for sql in (
+                    "INSERT OR IGNORE INTO scene_nums(id) SELECT DISTINCT scene_id "
+                    "FROM tile_scans_v1",
+                    "INSERT INTO scan_nums(scene, id) SELECT DISTINCT n.num, v.scan_id "
+                    "FROM tile_scans_v1 v JOIN scene_nums n ON n.id = v.scene_id",
+                    "INSERT INTO tile_scans(scene, tile, scan, owner) "
+                    "SELECT n.num, v.tile, m.num, v.owner FROM tile_scans_v1 v "
+                    "JOIN scene_nums n ON n.id = v.scene_id "
+                    "JOIN scan_nums m ON m.scene = n.num AND m.id = v.scan_id",
+                    "DROP TABLE tile_scans_v1",
+                ):
+                    self._db.execute(sql)
+            self._db.execute("UPDATE meta SET value=? WHERE key='version'", (str(CATALOG_VERSION),))
+
+    def _num(self, scene_id: str, create: bool = False) -> int:
+        """The scene's number in ``tile_scans``, given on its first row (without ``create``,
+        -1, which matches no row, for a scene that has none)."""
+        num = self._nums.get(scene_id)
+        if num is None:
+            if create:
+                self._db.execute("INSERT OR IGNORE INTO scene_nums(id) VALUES(?)", (scene_id,))
+            row = self._db.execute("SELECT num FROM scene_nums WHERE id=?", (scene_id,))
+            found = row.fetchone()
+            if found is None:
+                return -1
+            num = self._nums[scene_id] = int(found[0])
+        return num
+
+    def _scan_nums(self, scene: int, scan_ids: Sequence[str]) -> dict[str, int]:
+        """``{scan_id: number}`` of the scans (any tile owner's id, whether or not it is a
+        row of ``scans``) in ``tile_scans`` rows of the scene numbered ``scene``; given on
+        first use."""
+        wanted = sorted(set(scan_ids))
+        self._db.executemany(
+            "INSERT OR IGNORE INTO scan_nums(scene, id) VALUES(?,?)",
+            [(scene, scan_id) for scan_id in wanted],
+        )
+        out: dict[str, int] = {}
+        for chunk in _chunks(wanted, 500):
+            marks = ",".join("?" * len(chunk))
+            out.update(
+                self._db.execute(
+                    f"SELECT id, num FROM scan_nums WHERE scene=? AND id IN ({marks})",
+                    (scene, *chunk),
+                ).fetchall()
+            )
+        return out
 
     def _add_columns(self) -> None:
         """Give a catalog written before :data:`_ADDED_COLUMNS` those columns."""
@@ -221,10 +303,14 @@ class Catalog:
 
     def delete_scene(self, scene_id: str) -> None:
         with self.transaction():
-            for table in ("scans", "tile_scans", "journal", "publishing", "tile_epochs",
-                          "mesh_cache"):  # fmt: skip
+            num = self._num(scene_id)
+            self._db.execute("DELETE FROM tile_scans WHERE scene=?", (num,))
+            self._db.execute("DELETE FROM scan_nums WHERE scene=?", (num,))
+            for table in ("scans", "journal", "publishing", "tile_epochs", "mesh_cache"):
                 self._db.execute(f"DELETE FROM {table} WHERE scene_id=?", (scene_id,))
+            self._db.execute("DELETE FROM scene_nums WHERE id=?", (scene_id,))
             self._db.execute("DELETE FROM scenes WHERE id=?", (scene_id,))
+        self._nums.pop(scene_id, None)
 
     # --- scans --------------------------------------------------------------------------------
     def add_scan(
@@ -341,95 +427,96 @@ class Catalog:
         self._db.execute("DELETE FROM scans WHERE scene_id=? AND id=?", (scene_id, scan_id))
 
     # --- tiles --------------------------------------------------------------------------------
+    # ``tile_scans`` rows are (scene number, packed tile key, scan seq, owner): a row per scan
+    # that informs or owns the tile; a tile exists iff it has an owner row.
     def tile_keys(self, scene_id: str) -> np.ndarray:
         """Packed keys of the tiles that exist (have an owner), sorted."""
         rows = self._db.execute(
-            "SELECT DISTINCT tile FROM tile_scans WHERE scene_id=? AND owner=1 ORDER BY tile",
-            (scene_id,),
+            "SELECT DISTINCT tile FROM tile_scans WHERE scene=? AND owner=1 ORDER BY tile",
+            (self._num(scene_id),),
         ).fetchall()
         return np.array([r[0] for r in rows], np.int64)
 
     def tile_keys_in_ranges(self, scene_id: str, ranges: Sequence[tuple[int, int]]) -> np.ndarray:
         """Packed keys of the tiles that exist within the packed-key ranges ``[lo, hi]``
         (ascending, disjoint), sorted: one range query on the tile index per range."""
+        num = self._num(scene_id)
         out: list[int] = []
         for lo, hi in ranges:
             rows = self._db.execute(
-                "SELECT DISTINCT tile FROM tile_scans WHERE scene_id=? AND tile BETWEEN ? AND ? "
+                "SELECT DISTINCT tile FROM tile_scans WHERE scene=? AND tile BETWEEN ? AND ? "
                 "AND owner=1 ORDER BY tile",
-                (scene_id, int(lo), int(hi)),
+                (num, int(lo), int(hi)),
             ).fetchall()
             out.extend(r[0] for r in rows)
         return np.array(out, np.int64)
 
     def n_tiles(self, scene_id: str) -> int:
         row = self._db.execute(
-            "SELECT COUNT(DISTINCT tile) FROM tile_scans WHERE scene_id=? AND owner=1",
-            (scene_id,),
+            "SELECT COUNT(DISTINCT tile) FROM tile_scans WHERE scene=? AND owner=1",
+            (self._num(scene_id),),
         ).fetchone()
         return int(row[0])
 
     def tile_scans(self, scene_id: str, tiles: np.ndarray) -> dict[int, list[tuple[str, bool]]]:
         """``{tile: [(scan_id, is_owner), ...]}`` for the given packed keys."""
+        num = self._num(scene_id)
         out: dict[int, list[tuple[str, bool]]] = {t: [] for t in _packed(tiles)}
         for chunk in _chunks(list(out), 500):
             marks = ",".join("?" * len(chunk))
             rows = self._db.execute(
-                f"SELECT tile, scan_id, owner FROM tile_scans WHERE scene_id=? AND tile IN "
-                f"({marks})",
-                (scene_id, *chunk),
+                f"SELECT t.tile, m.id, t.owner FROM tile_scans t JOIN scan_nums m "
+                f"ON m.num=t.scan WHERE t.scene=? AND t.tile IN ({marks})",
+                (num, *chunk),
             )
             for tile, scan_id, owner in rows:
                 out[tile].append((scan_id, bool(owner)))
         return out
 
-    def tiles_of_scan(self, scene_id: str, scan_id: str) -> tuple[np.ndarray, np.ndarray]:
-        """Packed keys of the tiles a scan informs or owns, and whether it owns each."""
-        rows = self._db.execute(
-            "SELECT tile, owner FROM tile_scans WHERE scene_id=? AND scan_id=? ORDER BY tile",
-            (scene_id, scan_id),
-        ).fetchall()
-        return (
-            np.array([r[0] for r in rows], np.int64),
-            np.array([bool(r[1]) for r in rows], np.bool_),
-        )
-
     def add_tile_scans(
         self, scene_id: str, scan_id: str, tiles: np.ndarray, owner: np.ndarray
     ) -> None:
+        """Rows for the tiles (packed keys) the scan informs, and whether it owns each."""
+        num = self._num(scene_id, create=True)
+        seq = self._scan_nums(num, [scan_id])[scan_id]
         self._db.executemany(
-            "INSERT OR REPLACE INTO tile_scans(scene_id, tile, scan_id, owner) VALUES(?,?,?,?)",
+            "INSERT OR REPLACE INTO tile_scans(scene, tile, scan, owner) VALUES(?,?,?,?)",
             (  # one row at a time: a 1 cm scan has about a million
-                (scene_id, t, scan_id, int(o))
-                for t, o in zip(_packed(tiles), np.asarray(owner).tolist(), strict=True)
+                (num, t, seq, o)
+                for t, o in zip(_packed(tiles), np.asarray(owner, np.int64).tolist(), strict=True)
             ),
         )
 
     def remove_tile_scans(self, scene_id: str, scan_id: str) -> None:
-        self._db.execute(
-            "DELETE FROM tile_scans WHERE scene_id=? AND scan_id=?", (scene_id, scan_id)
-        )
+        """Forget the scan's rows (and its number)."""
+        num = self._num(scene_id)
+        row = self._db.execute(
+            "SELECT num FROM scan_nums WHERE scene=? AND id=?", (num, scan_id)
+        ).fetchone()
+        if row is not None:
+            self._db.execute("DELETE FROM tile_scans WHERE scene=? AND scan=?", (num, row[0]))
+            self._db.execute("DELETE FROM scan_nums WHERE num=?", (row[0],))
 
     def set_tile_owners(
         self, scene_id: str, tiles: np.ndarray, owners: Sequence[frozenset[str]]
     ) -> None:
         """Make ``owners[n]`` the owners of tile ``tiles[n]`` (packed keys); other scans that
         owned it keep a row as informing scans."""
+        num = self._num(scene_id, create=True)
+        seqs = self._scan_nums(num, [s for own in owners for s in own])
         for tile, own in zip(_packed(tiles), owners, strict=True):
-            self._db.execute(
-                "UPDATE tile_scans SET owner=0 WHERE scene_id=? AND tile=?", (scene_id, tile)
-            )
+            self._db.execute("UPDATE tile_scans SET owner=0 WHERE scene=? AND tile=?", (num, tile))
             self._db.executemany(
-                "INSERT INTO tile_scans(scene_id, tile, scan_id, owner) VALUES(?,?,?,1) "
-                "ON CONFLICT(scene_id, tile, scan_id) DO UPDATE SET owner=1",
-                [(scene_id, tile, scan_id) for scan_id in sorted(own)],
+                "INSERT INTO tile_scans(scene, tile, scan, owner) VALUES(?,?,?,1) "
+                "ON CONFLICT(scene, tile, scan) DO UPDATE SET owner=1",
+                [(num, tile, seqs[scan_id]) for scan_id in sorted(own)],
             )
 
     def delete_tiles(self, scene_id: str, tiles: np.ndarray) -> None:
         """Forget tiles (packed keys): every row of their owners and informing scans."""
+        num = self._num(scene_id)
         self._db.executemany(
-            "DELETE FROM tile_scans WHERE scene_id=? AND tile=?",
-            [(scene_id, t) for t in _packed(tiles)],
+            "DELETE FROM tile_scans WHERE scene=? AND tile=?", [(num, t) for t in _packed(tiles)]
         )
 
     # --- journal and epochs -------------------------------------------------------------------
@@ -513,13 +600,16 @@ class Catalog:
             self._db.execute("SELECT state, COUNT(*) FROM scans GROUP BY state").fetchall()
         )
         tiles = self._db.execute(
-            "SELECT COUNT(*) FROM (SELECT DISTINCT scene_id, tile FROM tile_scans WHERE owner=1)"
+            "SELECT COUNT(*) FROM (SELECT DISTINCT scene, tile FROM tile_scans WHERE owner=1)"
         ).fetchone()[0]
         return {"scans": scans, "tiles": int(tiles)}
 
     def count(self, table: str, scene_id: str) -> int:
         if table not in ("scans", "tile_scans", "journal", "mesh_cache"):
             raise ValueError(table)
+        if table == "tile_scans":
+            sql = "SELECT COUNT(*) FROM tile_scans WHERE scene=?"
+            return int(self._db.execute(sql, (self._num(scene_id),)).fetchone()[0])
         return int(
             self._db.execute(
                 f"SELECT COUNT(*) FROM {table} WHERE scene_id=?", (scene_id,)
@@ -531,6 +621,6 @@ def _json(value: dict[str, Any] | None) -> str | None:
     return None if value is None else json.dumps(value)
 
 
-def _chunks(items: list[int], n: int) -> Iterator[list[int]]:
+def _chunks(items: list[_Item], n: int) -> Iterator[list[_Item]]:
     for start in range(0, len(items), n):
         yield items[start : start + n]

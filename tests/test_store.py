@@ -327,6 +327,49 @@ def test_a_version_1_store_killed_mid_group_is_upgraded_and_rebuilt(tmp_path, ro
     assert json.loads(marker.read_text())["version"] == 3
 
 
+#: A version-2 catalog's ``tile_scans`` written back as version 1 held it (ids as text).
+_CATALOG_TO_VERSION_1 = """
+CREATE TABLE tile_scans_v1(
+    scene_id TEXT NOT NULL, tile INTEGER NOT NULL, scan_id TEXT NOT NULL,
+    owner INTEGER NOT NULL, PRIMARY KEY(scene_id, tile, scan_id)) WITHOUT ROWID;
+INSERT INTO tile_scans_v1 SELECT n.id, t.tile, m.id, t.owner FROM tile_scans t
+    JOIN scene_nums n ON n.num = t.scene JOIN scan_nums m ON m.num = t.scan;
+DROP TABLE tile_scans;
+DROP TABLE scan_nums;
+ALTER TABLE tile_scans_v1 RENAME TO tile_scans;
+CREATE INDEX tile_scans_scan ON tile_scans(scene_id, scan_id);
+DROP TABLE scene_nums;
+UPDATE meta SET value = '1' WHERE key = 'version';
+"""
+
+
+def test_a_version_1_catalog_is_upgraded_and_its_scene_goes_on(tmp_path, room):
+    """Catalog version 2 holds integers in ``tile_scans``: a version-1 catalog (the ids as
+    text) is rewritten when opened, and its scene removes and adds scans exactly."""
+    import sqlite3
+
+    grid = _grid()
+    with open_store(tmp_path / "s", grid, PARAMS) as scene:
+        _fill(scene, room.scans[:4])
+        before = scene.catalog.tile_scans(scene.scene_id, pack_keys(scene.tile_keys()))
+        n_rows = scene.catalog.count("tile_scans", scene.scene_id)
+        catalog_path = scene.catalog.path
+    db = sqlite3.connect(catalog_path)
+    db.executescript(_CATALOG_TO_VERSION_1)
+    db.close()
+    with open_store(tmp_path / "s") as scene:
+        assert scene.catalog._db.execute("SELECT value FROM meta").fetchone()[0] == "2"
+        keys = pack_keys(scene.tile_keys())
+        assert {t: sorted(v) for t, v in scene.catalog.tile_scans(scene.scene_id, keys).items()} \
+            == {t: sorted(v) for t, v in before.items()}  # fmt: skip
+        assert scene.catalog.count("tile_scans", scene.scene_id) == n_rows
+        scene.remove(room.scans[1][0])
+        _same_dense(scene.to_dense(), _memory([room.scans[0], *room.scans[2:4]], grid).to_dense())
+        _fill(scene, room.scans[4:6])
+        expected = _memory([room.scans[0], *room.scans[2:6]], grid)
+        _same_dense(scene.to_dense(), expected.to_dense())
+
+
 def test_an_interrupted_removal_is_finished_at_the_next_open(tmp_path, room):
     grid = _grid()
     without = _memory(room.scans[1:4], grid)
