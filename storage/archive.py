@@ -343,15 +343,18 @@ class ScanArchive:
 
     # --- reading -----------------------------------------------------------------------------
     def _attrs(self, scan_id: str) -> dict[str, Any]:
-        return self._group(scan_id)[1]
+        return self._group(scan_id)[0]
 
-    def _group(self, scan_id: str) -> tuple[Path, dict[str, Any]]:
-        """The entry of ``scan_id`` and its group's attributes."""
+    def _group(
+        self, scan_id: str, also: Sequence[str] = ()
+    ) -> tuple[dict[str, Any], dict[str, bytes]]:
+        """The attributes of ``scan_id``'s group, and those of its files ``also`` that it
+        has (read with them: the entry is opened once)."""
         path = self._entry(scan_id)
         if path is None:
             raise ArchiveError(f"scan {scan_id!r} is not in the archive")
         try:
-            found = _members(path, [_GROUP_META])
+            found = _members(path, [_GROUP_META, *also])
         except (OSError, zipfile.BadZipFile) as exc:
             raise ArchiveError(f"scan {scan_id!r}: archive entry is unreadable ({exc})") from exc
         if _GROUP_META not in found:
@@ -365,7 +368,7 @@ class ScanArchive:
         missing = [k for k in ("sensor", "pose", "noise", "checksum") if k not in attrs]
         if missing:
             raise ArchiveError(f"scan {scan_id!r}: archive entry lacks {', '.join(missing)}")
-        return path, dict(attrs)
+        return dict(attrs), found
 
     def checksum(self, scan_id: str) -> str:
         """The stored checksum of ``scan_id`` (not verified; :meth:`get` verifies)."""
@@ -391,9 +394,8 @@ class ScanArchive:
             When the scan is not archived, a part is missing or unreadable, or the checksum
             does not match (the message names the scan).
         """
-        path, attrs = self._group(scan_id)
+        attrs, found = self._group(scan_id, [_RANGE_META, _RANGE_CHUNK])
         try:
-            found = _members(path, [_RANGE_META, _RANGE_CHUNK])
             range_m = _decode_range(json.loads(found[_RANGE_META]), found.get(_RANGE_CHUNK))
             pose = np.array(attrs["pose"], np.float64)
         except Exception as exc:

@@ -20,6 +20,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from ._catalog_schema import SCHEMA, add_columns, upgrade_from_1
+
 __all__ = [
     "CATALOG_VERSION",
     "Catalog",
@@ -35,50 +37,6 @@ CATALOG_VERSION = 2
 #: SQLite's page cache per connection (KiB): the checkpoint inserts a row per (scan, tile).
 _CACHE_KIB = 16384
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS scenes(
-    id TEXT PRIMARY KEY, name TEXT NOT NULL, tenant TEXT NOT NULL,
-    grid TEXT NOT NULL, params TEXT NOT NULL, created_at REAL NOT NULL, sensor TEXT);
-CREATE TABLE IF NOT EXISTS scans(
-    scene_id TEXT NOT NULL, id TEXT NOT NULL, seq INTEGER NOT NULL, name TEXT,
-    state TEXT NOT NULL, ox REAL NOT NULL, oy REAL NOT NULL, oz REAL NOT NULL,
-    reach_m REAL NOT NULL, checksum TEXT NOT NULL, created_at REAL NOT NULL,
-    far_ranges INTEGER, PRIMARY KEY(scene_id, id));
-CREATE UNIQUE INDEX IF NOT EXISTS scans_seq ON scans(scene_id, seq);
-CREATE INDEX IF NOT EXISTS scans_origin ON scans(scene_id, ox);
-CREATE INDEX IF NOT EXISTS scans_reach ON scans(scene_id, reach_m);
-CREATE TABLE IF NOT EXISTS scene_nums(num INTEGER PRIMARY KEY, id TEXT NOT NULL UNIQUE);
-CREATE TABLE IF NOT EXISTS scan_nums(
-    num INTEGER PRIMARY KEY, scene INTEGER NOT NULL, id TEXT NOT NULL, UNIQUE(scene, id));
-{tile_scans}
-CREATE TABLE IF NOT EXISTS journal(
-    scene_id TEXT NOT NULL, tile INTEGER NOT NULL, PRIMARY KEY(scene_id, tile)) WITHOUT ROWID;
-CREATE TABLE IF NOT EXISTS publishing(scene_id TEXT PRIMARY KEY, attempt TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS tile_epochs(
-    scene_id TEXT NOT NULL, tile INTEGER NOT NULL, epoch INTEGER NOT NULL,
-    PRIMARY KEY(scene_id, tile)) WITHOUT ROWID;
-CREATE TABLE IF NOT EXISTS mesh_cache(
-    scene_id TEXT NOT NULL, tile INTEGER NOT NULL, options TEXT NOT NULL,
-    epoch INTEGER NOT NULL, data BLOB NOT NULL,
-    PRIMARY KEY(scene_id, tile, options)) WITHOUT ROWID;
-"""
-_TILE_SCANS = """
-CREATE TABLE IF NOT EXISTS tile_scans(
-    scene INTEGER NOT NULL, tile INTEGER NOT NULL, scan INTEGER NOT NULL,
-    owner INTEGER NOT NULL, PRIMARY KEY(scene, tile, scan)) WITHOUT ROWID;
-CREATE INDEX IF NOT EXISTS tile_scans_scan ON tile_scans(scene, scan);
-"""
-_SCHEMA = _SCHEMA.replace("{tile_scans}", _TILE_SCANS)
-
-#: Columns added after version 1 was released, ``(table, column, declaration)``: a catalog
-#: written before them gains them when it is opened (NULL in its existing rows).
-_ADDED_COLUMNS = (
-    ("scenes", "sensor", "TEXT"),  # the scene's default sensor (JSON), if it has one
-    ("scans", "far_ranges", "INTEGER"),  # ranges beyond max_range set invalid when decoded
-)
-
-#: States of a scan: archived and acknowledged; fused into the tiles; being removed.
 SCAN_STATES = ("stored", "fused", "removing")
 
 
@@ -131,8 +89,8 @@ class Catalog:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute(f"PRAGMA cache_size=-{_CACHE_KIB}")
-            self._db.executescript(_SCHEMA)
-            self._add_columns()
+            self._db.executescript(SCHEMA)
+            add_columns(self._db)
             row = self._db.execute("SELECT value FROM meta WHERE key='version'").fetchone()
         except sqlite3.DatabaseError as exc:
             raise CatalogError(f"{self.path}: not a rangefuse catalog ({exc})") from None
@@ -143,41 +101,12 @@ class Catalog:
                 "INSERT INTO meta(key, value) VALUES('version', ?)", (str(CATALOG_VERSION),)
             )
         elif row[0] == "1":
-            self._upgrade_from_1()
+            upgrade_from_1(self._db, CATALOG_VERSION)
         elif row[0] != str(CATALOG_VERSION):
             raise CatalogError(
                 f"{self.path}: catalog version {row[0]}, this rangefuse reads versions 1 "
                 f"(upgraded when opened) and {CATALOG_VERSION}"
             )
-
-    def _upgrade_from_1(self) -> None:
-        """Rewrite a version-1 ``tile_scans`` (the scene's and the scan's ids as text in
-        every row) with integers, in one transaction; a crash leaves version 1."""
-        with self.transaction():
-            row = self._db.execute("SELECT value FROM meta WHERE key='version'").fetchone()
-            if row[0] != "1":  # another process upgraded it first
-                return
-            self._db.execute("INSERT OR IGNORE INTO scene_nums(id) SELECT id FROM scenes")
-            columns = {r[1] for r in self._db.execute("PRAGMA table_info(tile_scans)")}
-            if "scene_id" in columns:  # the version-1 table (not one this open just made)
-                self._db.execute("DROP INDEX IF EXISTS tile_scans_scan")
-                self._db.execute("ALTER TABLE tile_scans RENAME TO tile_scans_v1")
-                for statement in _TILE_SCANS.split(";"):
-                    if statement.strip():
-                        self._db.execute(statement)
-                for sql in (
-                    "INSERT OR IGNORE INTO scene_nums(id) SELECT DISTINCT scene_id "
-                    "FROM tile_scans_v1",
-                    "INSERT INTO scan_nums(scene, id) SELECT DISTINCT n.num, v.scan_id "
-                    "FROM tile_scans_v1 v JOIN scene_nums n ON n.id = v.scene_id",
-                    "INSERT INTO tile_scans(scene, tile, scan, owner) "
-                    "SELECT n.num, v.tile, m.num, v.owner FROM tile_scans_v1 v "
-                    "JOIN scene_nums n ON n.id = v.scene_id "
-                    "JOIN scan_nums m ON m.scene = n.num AND m.id = v.scan_id",
-                    "DROP TABLE tile_scans_v1",
-                ):
-                    self._db.execute(sql)
-            self._db.execute("UPDATE meta SET value=? WHERE key='version'", (str(CATALOG_VERSION),))
 
     def _num(self, scene_id: str, create: bool = False) -> int:
         """The scene's number in ``tile_scans``, given on its first row (without ``create``,
@@ -212,17 +141,6 @@ class Catalog:
                 ).fetchall()
             )
         return out
-
-    def _add_columns(self) -> None:
-        """Give a catalog written before :data:`_ADDED_COLUMNS` those columns."""
-        for table, column, declaration in _ADDED_COLUMNS:
-            have = {r[1] for r in self._db.execute(f"PRAGMA table_info({table})")}
-            if column not in have:
-                try:
-                    self._db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {declaration}")
-                except sqlite3.OperationalError as exc:  # another process added it first
-                    if "duplicate column" not in str(exc):
-                        raise
 
     def close(self) -> None:
         self._db.close()

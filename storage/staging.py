@@ -26,7 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .zarr_tiles import KEY_OFFSET, TileArrayError, ZarrTiles, fsync_paths, stored_chunk_keys
+from .zarr_tiles import (
+    KEY_OFFSET,
+    TileArrayError,
+    ZarrTiles,
+    fsync_paths,
+    stored_chunk_keys,
+    tile_rows,
+)
 
 __all__ = ["Staging"]
 
@@ -81,12 +88,13 @@ class Staging:
         for name in self._names(np.asarray(keys, np.int64).reshape(-1, 3)):
             self._put(f"{root}/{name}", b"")
 
-    def read(self, keys: np.ndarray) -> np.ndarray:
-        """Staged tiles (they must have been staged); a tombstone reads as unknown."""
+    def read(
+        self, keys: np.ndarray, out: np.ndarray | None = None, rows: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Staged tiles (they must have been staged); a tombstone reads as unknown. ``out``
+        and ``rows`` as in :meth:`ZarrTiles.read`."""
         keys = np.asarray(keys, np.int64).reshape(-1, 3)
-        T = self.tiles.tile_size
-        out = np.zeros((len(keys), T, T, T), np.int64)
-        flat = out.reshape(len(keys), T**3)
+        out, flat, at = tile_rows(out, rows, len(keys), self.tiles.tile_size)
         root = str(self.folder)
         for n, name in enumerate(self._names(keys)):
             path = f"{root}/{name}"
@@ -96,7 +104,9 @@ class Staging:
             except FileNotFoundError:
                 raise TileArrayError(f"tile {keys[n].tolist()} was not staged") from None
             if raw:
-                flat[n] = self.tiles.decode(raw, f"staged tile {keys[n].tolist()}: {path}")
+                flat[at[n]] = self.tiles.decode(raw, f"staged tile {keys[n].tolist()}: {path}")
+            else:
+                flat[at[n]] = 0
         return out
 
     def fsync(self, keys: np.ndarray) -> None:

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 import numpy as np
-from rangefuse.engine import FusionParams, GridSpec, PreparedScan, prepare_scan
+from rangefuse.engine import FusionParams, GridSpec, PreparedScan, Scan, prepare_scan
 from rangefuse.engine.fusion import integrate_seen
 from rangefuse.engine.grid import pack_keys, unpack_keys
 from rangefuse.engine.meshing import mesh_tiles
@@ -65,25 +65,45 @@ Item = TypeVar("Item")
 Result = TypeVar("Result")
 
 
+#: Bytes of range maps a plan unit keeps as read from the archive (the planner reads each
+#: new scan twice, for its allocation and for its view): 256 scans of 64 x 1024.
+RAW_SCAN_BYTES = 64 * 2**20
+
+
 class _Scans:
     """A scene's archived scans, prepared for the kernels on first use; the last two kept
-    (a unit's memory is one scan or two, not the scene)."""
+    prepared (a unit's memory is one scan or two, not the scene), and the scans as read
+    from the archive up to :data:`RAW_SCAN_BYTES` of range maps."""
 
     def __init__(self, group: Path, params: FusionParams) -> None:
         self.archive = ScanArchive(group)
         self.params = params
         self._prepared: OrderedDict[str, PreparedScan] = OrderedDict()
+        self._raw: OrderedDict[str, Scan] = OrderedDict()
+        self._raw_bytes = 0
 
     def __call__(self, scan_id: str) -> PreparedScan:
         prepared = self._prepared.get(scan_id)
         if prepared is None:
-            prepared = prepare_scan(self.archive.get(scan_id), self.params)
+            prepared = prepare_scan(self._read(scan_id), self.params)
             self._prepared[scan_id] = prepared
             while len(self._prepared) > 2:
                 self._prepared.popitem(last=False)
         else:
             self._prepared.move_to_end(scan_id)
         return prepared
+
+    def _read(self, scan_id: str) -> Scan:
+        scan = self._raw.get(scan_id)
+        if scan is not None:
+            self._raw.move_to_end(scan_id)
+            return scan
+        scan = self.archive.get(scan_id)
+        self._raw[scan_id] = scan
+        self._raw_bytes += scan.range_m.nbytes
+        while self._raw_bytes > RAW_SCAN_BYTES and len(self._raw) > 1:
+            self._raw_bytes -= self._raw.popitem(last=False)[1].range_m.nbytes
+        return scan
 
 
 # --------------------------------------------------------------------------------------------

@@ -61,6 +61,21 @@ class TileArrayError(ValueError):
     """A missing or unusable tile array, a corrupt chunk, or bad keys or tile data."""
 
 
+def tile_rows(
+    out: np.ndarray | None, rows: np.ndarray | None, n: int, T: int
+) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """Where a read of ``n`` tiles puts them: ``out`` (a new int64 (n, T, T, T) when None),
+    its tiles flattened (a view), and the row of each tile read."""
+    if out is None:
+        out = np.empty((n, T, T, T), np.int64)
+    if out.dtype != np.int64 or out.shape[1:] != (T, T, T) or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous int64 (m, {T}, {T}, {T})")
+    at = list(range(n)) if rows is None else np.asarray(rows, np.int64).tolist()
+    if len(at) != n:
+        raise ValueError(f"{len(at)} rows for {n} tiles")
+    return out, out.reshape(len(out), T**3), at
+
+
 #: From this many chunks on, :meth:`ZarrTiles.fsync` syncs the whole file system instead.
 _SYNCFS_FROM = 256
 
@@ -208,8 +223,12 @@ class ZarrTiles:
         keys = self._check_keys(np.asarray(key).reshape(1, 3))
         return self.group_path / next(self._chunk_names(keys))
 
-    def read(self, keys: np.ndarray) -> np.ndarray:
+    def read(
+        self, keys: np.ndarray, out: np.ndarray | None = None, rows: np.ndarray | None = None
+    ) -> np.ndarray:
         """Voxel data of ``keys`` (int64 (n, 3)) as int64 (n, T, T, T); missing tiles are 0.
+        With ``out`` (a C-contiguous int64 (m, T, T, T)), tile ``n`` goes to ``out[rows[n]]``
+        (``rows`` defaults to ``0..n-1``) and ``out`` is returned.
 
         Raises
         ------
@@ -217,17 +236,16 @@ class ZarrTiles:
             For a chunk file that does not decode to one tile (naming the key).
         """
         keys = self._check_keys(keys)
-        T = self.tile_size
-        out = np.zeros((len(keys), T, T, T), np.int64)
-        flat = out.reshape(len(keys), T**3)
+        out, flat, at = tile_rows(out, rows, len(keys), self.tile_size)
         for n, name in enumerate(self._chunk_names(keys)):
             path = self.group_path / name
             try:
                 with open(path, "rb") as fh:
                     raw: bytes = fh.read()
             except (FileNotFoundError, NotADirectoryError):
+                flat[at[n]] = 0
                 continue
-            flat[n] = self.decode(raw, f"tile {keys[n].tolist()}: chunk {path}")
+            flat[at[n]] = self.decode(raw, f"tile {keys[n].tolist()}: chunk {path}")
         return out
 
     def encode(self, tile: np.ndarray) -> bytes:
