@@ -47,7 +47,8 @@ class TileCache:
         """Copies of the tiles ``keys`` (int64 (n, 3)): as this cache holds or staged them,
         else committed; ``new`` ones start as unknown."""
         packed = pack_keys(keys)
-        out = np.empty((len(keys), self.T, self.T, self.T), np.int64)  # each row set once
+        # zeros from calloc: pages of new tiles are first touched by the (parallel) kernel
+        out = np.zeros((len(keys), self.T, self.T, self.T), np.int64)
         committed = []
         staged = []
         for n, p in enumerate(packed.tolist()):
@@ -59,8 +60,6 @@ class TileCache:
                 staged.append(n)
             elif not new[n]:
                 committed.append(n)
-            else:
-                out[n] = 0
         for rows, source in ((committed, self.tiles), (staged, self.staging)):
             if rows:
                 picked = np.array(rows, np.int64)
