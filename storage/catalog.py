@@ -37,6 +37,7 @@ CATALOG_VERSION = 2
 #: SQLite's page cache per connection (KiB): the checkpoint inserts a row per (scan, tile).
 _CACHE_KIB = 16384
 
+#: States of a scan: archived and acknowledged; fused into the tiles; being removed.
 SCAN_STATES = ("stored", "fused", "removing")
 
 
@@ -345,7 +346,7 @@ class Catalog:
         self._db.execute("DELETE FROM scans WHERE scene_id=? AND id=?", (scene_id, scan_id))
 
     # --- tiles --------------------------------------------------------------------------------
-    # ``tile_scans`` rows are (scene number, packed tile key, scan seq, owner): a row per scan
+    # ``tile_scans`` rows are (scene number, packed tile key, scan number, owner): a row per scan
     # that informs or owns the tile; a tile exists iff it has an owner row.
     def tile_keys(self, scene_id: str) -> np.ndarray:
         """Packed keys of the tiles that exist (have an owner), sorted."""
@@ -396,11 +397,11 @@ class Catalog:
     ) -> None:
         """Rows for the tiles (packed keys) the scan informs, and whether it owns each."""
         num = self._num(scene_id, create=True)
-        seq = self._scan_nums(num, [scan_id])[scan_id]
+        scan = self._scan_nums(num, [scan_id])[scan_id]
         self._db.executemany(
             "INSERT OR REPLACE INTO tile_scans(scene, tile, scan, owner) VALUES(?,?,?,?)",
             (  # one row at a time: a 1 cm scan has about a million
-                (num, t, seq, o)
+                (num, t, scan, o)
                 for t, o in zip(_packed(tiles), np.asarray(owner, np.int64).tolist(), strict=True)
             ),
         )
@@ -421,13 +422,13 @@ class Catalog:
         """Make ``owners[n]`` the owners of tile ``tiles[n]`` (packed keys); other scans that
         owned it keep a row as informing scans."""
         num = self._num(scene_id, create=True)
-        seqs = self._scan_nums(num, [s for own in owners for s in own])
+        scans = self._scan_nums(num, [s for own in owners for s in own])
         for tile, own in zip(_packed(tiles), owners, strict=True):
             self._db.execute("UPDATE tile_scans SET owner=0 WHERE scene=? AND tile=?", (num, tile))
             self._db.executemany(
                 "INSERT INTO tile_scans(scene, tile, scan, owner) VALUES(?,?,?,1) "
                 "ON CONFLICT(scene, tile, scan) DO UPDATE SET owner=1",
-                [(num, tile, seqs[scan_id]) for scan_id in sorted(own)],
+                [(num, tile, scans[scan_id]) for scan_id in sorted(own)],
             )
 
     def delete_tiles(self, scene_id: str, tiles: np.ndarray) -> None:
