@@ -102,8 +102,16 @@ class Catalog:
                 "INSERT INTO meta(key, value) VALUES('version', ?)", (str(CATALOG_VERSION),)
             )
         elif row[0] == "1":
-            upgrade_from_1(self._db, CATALOG_VERSION)
+            try:
+                upgrade_from_1(self._db, CATALOG_VERSION)
+            except sqlite3.DatabaseError as exc:
+                self._db.close()
+                raise CatalogError(
+                    f"{self.path}: upgrading the catalog from version 1 to {CATALOG_VERSION} "
+                    f"failed ({exc}); it is left at version 1"
+                ) from None
         elif row[0] != str(CATALOG_VERSION):
+            self._db.close()
             raise CatalogError(
                 f"{self.path}: catalog version {row[0]}, this rangefuse reads versions 1 "
                 f"(upgraded when opened) and {CATALOG_VERSION}"

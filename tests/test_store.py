@@ -370,6 +370,36 @@ def test_a_version_1_catalog_is_upgraded_and_its_scene_goes_on(tmp_path, room):
         _same_dense(scene.to_dense(), expected.to_dense())
 
 
+def test_an_upgrade_that_fails_leaves_version_1_and_a_newer_catalog_is_refused(
+    tmp_path, room, monkeypatch
+):
+    import sqlite3
+
+    from rangefuse.storage import _catalog_schema
+    from rangefuse.storage.catalog import Catalog, CatalogError
+
+    with open_store(tmp_path / "s", _grid(), PARAMS) as scene:
+        _fill(scene, room.scans[:2])
+        path = scene.catalog.path
+    db = sqlite3.connect(path)
+    db.executescript(_CATALOG_TO_VERSION_1)
+    rows = db.execute("SELECT * FROM tile_scans ORDER BY 1, 2, 3").fetchall()
+    db.close()
+    assert rows
+    broken = (*_catalog_schema._FROM_1[:-1], "INSERT INTO no_such_table VALUES(1)")
+    monkeypatch.setattr(_catalog_schema, "_FROM_1", broken)
+    with pytest.raises(CatalogError, match="no_such_table"):
+        Catalog(path)
+    db = sqlite3.connect(path)
+    assert db.execute("SELECT value FROM meta WHERE key='version'").fetchone() == ("1",)
+    assert db.execute("SELECT * FROM tile_scans ORDER BY 1, 2, 3").fetchall() == rows
+    db.execute("UPDATE meta SET value = '7' WHERE key = 'version'")
+    db.commit()
+    db.close()
+    with pytest.raises(CatalogError, match="catalog version 7, this rangefuse reads versions 1"):
+        Catalog(path)
+
+
 def test_an_interrupted_removal_is_finished_at_the_next_open(tmp_path, room):
     grid = _grid()
     without = _memory(room.scans[1:4], grid)
