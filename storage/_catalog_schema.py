@@ -7,7 +7,13 @@ import sqlite3
 
 __all__ = ["SCHEMA", "add_columns", "upgrade_from_1"]
 
-SCHEMA = """
+_TILE_SCANS = """
+CREATE TABLE IF NOT EXISTS tile_scans(
+    scene INTEGER NOT NULL, tile INTEGER NOT NULL, scan INTEGER NOT NULL,
+    owner INTEGER NOT NULL, PRIMARY KEY(scene, tile, scan)) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS tile_scans_scan ON tile_scans(scene, scan);
+"""
+SCHEMA = f"""
 CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS scenes(
     id TEXT PRIMARY KEY, name TEXT NOT NULL, tenant TEXT NOT NULL,
@@ -23,7 +29,7 @@ CREATE INDEX IF NOT EXISTS scans_reach ON scans(scene_id, reach_m);
 CREATE TABLE IF NOT EXISTS scene_nums(num INTEGER PRIMARY KEY, id TEXT NOT NULL UNIQUE);
 CREATE TABLE IF NOT EXISTS scan_nums(
     num INTEGER PRIMARY KEY, scene INTEGER NOT NULL, id TEXT NOT NULL, UNIQUE(scene, id));
-{tile_scans}
+{_TILE_SCANS.strip()}
 CREATE TABLE IF NOT EXISTS journal(
     scene_id TEXT NOT NULL, tile INTEGER NOT NULL, PRIMARY KEY(scene_id, tile)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS publishing(scene_id TEXT PRIMARY KEY, attempt TEXT NOT NULL);
@@ -35,13 +41,6 @@ CREATE TABLE IF NOT EXISTS mesh_cache(
     epoch INTEGER NOT NULL, data BLOB NOT NULL,
     PRIMARY KEY(scene_id, tile, options)) WITHOUT ROWID;
 """
-_TILE_SCANS = """
-CREATE TABLE IF NOT EXISTS tile_scans(
-    scene INTEGER NOT NULL, tile INTEGER NOT NULL, scan INTEGER NOT NULL,
-    owner INTEGER NOT NULL, PRIMARY KEY(scene, tile, scan)) WITHOUT ROWID;
-CREATE INDEX IF NOT EXISTS tile_scans_scan ON tile_scans(scene, scan);
-"""
-SCHEMA = SCHEMA.replace("{tile_scans}", _TILE_SCANS)
 
 #: Columns added after version 1 was released, ``(table, column, declaration)``: a catalog
 #: written before them gains them when it is opened (NULL in its existing rows).
@@ -49,8 +48,6 @@ _ADDED_COLUMNS = (
     ("scenes", "sensor", "TEXT"),  # the scene's default sensor (JSON), if it has one
     ("scans", "far_ranges", "INTEGER"),  # ranges beyond max_range set invalid when decoded
 )
-
-#: States of a scan: archived and acknowledged; fused into the tiles; being removed.
 
 
 def add_columns(db: sqlite3.Connection) -> None:
