@@ -12,7 +12,8 @@ heap is kept: 60 faults an upload. Bigger buffers are still mapped and unmapped 
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
+
+from rangefuse.engine._memory import libc
 
 __all__ = ["TUNABLES", "tune_malloc", "with_tunables"]
 
@@ -30,9 +31,8 @@ _M_MMAP_THRESHOLD = -3
 
 def tune_malloc() -> bool:
     """Set this process's thresholds (``mallopt``); False where the C library is not glibc."""
-    try:
-        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
-    except (OSError, AttributeError):
+    mallopt = getattr(libc(), "mallopt", None)
+    if mallopt is None:
         return False
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(

@@ -33,8 +33,10 @@ GROUP_SPAN = 1.5
 #: ``max_pairs``). A group's plan, its views and its units hold arrays of these pairs, and
 #: the count does not follow from the others: a 1 cm scan of a street has about a million
 #: tiles of 16^3 in reach, a 10 cm one a few thousand. The planner takes the scans of a
-#: group while they fit; the next group starts with the rest.
-GROUP_PAIRS = 2**24
+#: group while they fit; the next group starts with the rest. 2^25 keeps the 128 m street at
+#: 1 cm under 1.5 GB with a 512 MB cache (peak 1,412 MB; ``docs/lidar.md``, "Memory between a
+#: store's groups").
+GROUP_PAIRS = 2**25
 
 
 def scan_groups(

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 from rangefuse.engine import DenseGrid, FusionParams, GridSpec, Scan, ScanNotFoundError
+from rangefuse.engine._memory import release_free_memory
 from rangefuse.engine.grid import KEY_LIMIT, pack_keys, unpack_keys
 from rangefuse.engine.meshing import HALO_TILES, Mesh
 from rangefuse.engine.planner import Plan, Sphere, View, scans_near, tiles_near
@@ -230,6 +231,8 @@ class Scene:
         work = self._group_work(new_ids, max_pairs)
         taken = list(work.plan.owned)
         self._commit_group(work, taken, self._run(work.units), report)
+        del work
+        release_free_memory()  # the group's memory, before the next group's plan
         return taken
 
     def _commit_group(

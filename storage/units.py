@@ -27,6 +27,7 @@ from typing import Any, Protocol, TypeVar
 
 import numpy as np
 from rangefuse.engine import FusionParams, GridSpec, PreparedScan, Scan, prepare_scan
+from rangefuse.engine._memory import release_free_memory
 from rangefuse.engine.fusion import integrate_seen
 from rangefuse.engine.grid import pack_keys, unpack_keys
 from rangefuse.engine.meshing import mesh_tiles
@@ -155,7 +156,9 @@ def plan_unit(unit: PlanUnit) -> tuple[Plan, list[View]]:
     else:
         raise ValueError(f"unknown kind of plan {unit.kind!r}")
     views = [replace(view, bounds=None) for view in plan.views(load)]
-    plan.steps = [replace(step, candidates=step.candidates[:0]) for step in plan.steps]
+    # a new empty array: a slice of the candidates would keep their memory alive
+    plan.steps = [replace(step, candidates=np.zeros(0, np.int64)) for step in plan.steps]
+    release_free_memory()
     return plan, views
 
 
@@ -223,11 +226,14 @@ def integrate_unit(unit: TileUnit) -> UnitResult:
             hits[k].append((np.flatnonzero(count > 0) + start).astype(rows.dtype))
             updates += int(count.sum())
         cache.store(keys, data)
+        del data  # the cache holds the batch's tiles now
     staging.fsync(unpack_keys(cache.flush()))
     informed = {
         scan_id: np.concatenate([steps[k][0][:0], *hits[k]])
         for k, (scan_id, *_) in enumerate(unit.steps)
     }
+    del cache, hits  # the tiles and the batches, before the heap is trimmed
+    release_free_memory()
     return UnitResult(informed=informed, voxel_updates=updates, fuse_seconds=fuse_seconds)
 
 

@@ -1,4 +1,5 @@
-"""glibc's malloc thresholds of the service's processes (service/_malloc.py)."""
+"""glibc's malloc thresholds of the service's processes (service/_malloc.py), and the free
+memory handed back between a store's groups (engine/_memory.py)."""
 
 from __future__ import annotations
 
@@ -47,3 +48,36 @@ def test_children_get_them_unless_the_environment_says_otherwise():
     assert with_tunables({"A": "1"}) == {"A": "1", "GLIBC_TUNABLES": TUNABLES}
     mine = {"GLIBC_TUNABLES": "glibc.malloc.arena_max=2"}
     assert with_tunables(mine) == mine
+
+
+#: Free blocks below one still in use: the heap cannot shrink from its top, and only
+#: ``malloc_trim`` hands the pages between back.
+_TRIM = """
+import ctypes
+from rangefuse.engine._memory import libc, release_free_memory
+
+c = libc()
+c.malloc.restype = ctypes.c_void_p
+c.malloc.argtypes = [ctypes.c_size_t]
+c.free.argtypes = [ctypes.c_void_p]
+
+def rss():
+    with open("/proc/self/status") as fh:
+        return next(int(line.split()[1]) * 1024 for line in fh if line.startswith("VmRSS"))
+
+blocks = [c.malloc(4000) for _ in range(50_000)]  # 200 MB in blocks below the thresholds
+for b in blocks:
+    ctypes.memset(b, 1, 4000)
+top = c.malloc(4000)  # in use above them
+for b in blocks:
+    c.free(b)
+before = rss()
+assert release_free_memory()
+print(before - rss())
+"""
+
+
+def test_free_memory_below_a_block_in_use_goes_back_to_the_system():
+    out = subprocess.run([sys.executable, "-c", _TRIM], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert int(out.stdout) > 150 * 2**20  # of the 200 MB freed

@@ -164,6 +164,19 @@ def test_groups_take_scans_that_share_tiles_within_their_budgets(tmp_path, room,
         assert [r.id for r in scene.scan_rows(("fused",))] == [i for i, _ in room.scans[:2]]
 
 
+def test_a_plan_comes_back_without_the_memory_of_its_candidates(tmp_path, room):
+    """The views replace the steps' candidates: a plan unit returns empty arrays of its
+    own for them (an empty slice would keep each candidate array alive while the units
+    run: 97 MB for a group of 32 scans at 1 cm)."""
+    with open_store(tmp_path / "s", _grid(), PARAMS) as scene:
+        for item in room.scans[:3]:
+            scene.store_scan(*item)
+        ids = [scan_id for scan_id, _ in room.scans[:3]]
+        plan, views = scene._plan(kind="add", existing=np.zeros(0, np.int64), scans=ids)
+    assert views and len(plan.steps) == 3
+    assert all(len(s.candidates) == 0 and s.candidates.base is None for s in plan.steps)
+
+
 def test_a_groups_scans_lie_within_its_span_of_the_first(room, monkeypatch):
     """A drive: a scan stays in the group while its origin lies within GROUP_SPAN times the
     sum of its radius and the first scan's, up to the count and the pixels."""
