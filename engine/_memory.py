@@ -15,21 +15,10 @@ when no huge page is free (numpy/numpy#31590). On our machines that made the fir
 of a 1 cm batch's 203 MB of tiles cost 300-450 ms instead of about 75 ms, and it varies
 from run to run. :func:`zeros` gives large arrays anonymous ``mmap`` memory without that
 advice: zero-filled, in ordinary pages.
-
-*Freed memory.* glibc's malloc keeps memory a process freed in its heaps, for the next
-allocation, and its threshold for mapping a block of its own rises to the size of any
-mapped block freed (up to 32 MB), so the arrays of one phase of a store's group (a plan's
-rows, a unit's hits, the chunks' bytes) end up in heaps that a later phase, asking for
-other sizes, cannot reuse: at 1 cm the process kept about 430 MB more than it used after a
-group (``docs/lidar.md``, "Memory between a store's groups"). :func:`release_free_memory`
-hands what the heaps hold free back to the system between phases (``malloc_trim``).
 """
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
-import functools
 import math
 import mmap
 
@@ -75,23 +64,3 @@ def scratch_array(
     if scratch is None:
         return zeros(shape, dtype)
     return scratch.array(name, shape, dtype)
-
-
-@functools.cache
-def libc() -> ctypes.CDLL | None:
-    """The C library, or None where it cannot be loaded."""
-    try:
-        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-    except OSError:
-        return None
-
-
-def release_free_memory() -> bool:
-    """Give the memory malloc holds free back to the system (glibc's ``malloc_trim(0)``);
-    False where the C library has no ``malloc_trim`` (not glibc)."""
-    trim = getattr(libc(), "malloc_trim", None)
-    if trim is None:
-        return False
-    trim.argtypes = [ctypes.c_size_t]
-    trim(0)
-    return True

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import ctypes
 
-from rangefuse.engine._memory import libc
+from rangefuse.storage._heap import libc
 
 __all__ = ["TUNABLES", "tune_malloc", "with_tunables"]
 

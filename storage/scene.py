@@ -32,12 +32,12 @@ from typing import Any
 
 import numpy as np
 from rangefuse.engine import DenseGrid, FusionParams, GridSpec, Scan, ScanNotFoundError
-from rangefuse.engine._memory import release_free_memory
 from rangefuse.engine.grid import KEY_LIMIT, pack_keys, unpack_keys
 from rangefuse.engine.meshing import HALO_TILES, Mesh
 from rangefuse.engine.planner import Plan, Sphere, View, scans_near, tiles_near
 from rangefuse.engine.volume import dense_logodds
 
+from ._heap import release_free_memory
 from .archive import ScanArchive
 from .catalog import ScanRow
 from .groups import GROUP_PAIRS, GROUP_SCANS, scan_groups

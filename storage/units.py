@@ -27,7 +27,6 @@ from typing import Any, Protocol, TypeVar
 
 import numpy as np
 from rangefuse.engine import FusionParams, GridSpec, PreparedScan, Scan, prepare_scan
-from rangefuse.engine._memory import release_free_memory
 from rangefuse.engine.fusion import integrate_seen
 from rangefuse.engine.grid import pack_keys, unpack_keys
 from rangefuse.engine.meshing import mesh_tiles
@@ -41,6 +40,7 @@ from rangefuse.engine.planner import (
     scans_near,
 )
 
+from ._heap import release_free_memory
 from .archive import ScanArchive
 from .mesh_cache import encode_tile_mesh
 from .staging import Staging

@@ -1,5 +1,5 @@
 """glibc's malloc thresholds of the service's processes (service/_malloc.py), and the free
-memory handed back between a store's groups (engine/_memory.py)."""
+memory handed back between a store's groups (storage/_heap.py)."""
 
 from __future__ import annotations
 
@@ -54,7 +54,7 @@ def test_children_get_them_unless_the_environment_says_otherwise():
 #: ``malloc_trim`` hands the pages between back.
 _TRIM = """
 import ctypes
-from rangefuse.engine._memory import libc, release_free_memory
+from rangefuse.storage._heap import libc, release_free_memory
 
 c = libc()
 c.malloc.restype = ctypes.c_void_p
