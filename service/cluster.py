@@ -14,8 +14,6 @@ runner can be interrupted (a cancelled job, a stopping service).
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import ctypes.util
 import json
 import logging
 import math
@@ -35,6 +33,7 @@ import dask
 from dask.utils import parse_bytes
 from distributed import Client, Future, wait
 from distributed.scheduler import KilledWorker
+from rangefuse.storage._heap import libc
 from rangefuse.storage.units import MeshUnit, PlanUnit, TileUnit
 
 from ._malloc import with_tunables
@@ -380,8 +379,9 @@ def _die_with_parent(nice: int = 0) -> None:
 
 
 _PR_SET_PDEATHSIG = 1
-#: libc's prctl, resolved in the parent (Linux; the project's platform).
-_PRCTL = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True).prctl
+#: libc's prctl, resolved in the parent (Linux, the project's platform: without a C library
+#: the import fails here).
+_PRCTL = libc().prctl  # type: ignore[union-attr]
 
 
 def _limit_bytes(memory_limit: str, workers: int) -> int:

@@ -6,7 +6,9 @@ threshold for mapping a block of its own rises to the size of any mapped block f
 chunks' bytes) end up in heaps that a later phase, asking for other sizes, cannot reuse: at
 1 cm the process kept about 430 MB more than it used after a group (``docs/lidar.md``,
 "Memory between a store's groups"). :func:`release_free_memory` hands what the heaps hold
-free back to the system between phases (``malloc_trim``).
+free back to the system between phases (``malloc_trim``). :func:`libc` loads the C library
+for it and for the other calls the store and the service make into it (``syncfs``,
+``mallopt``, ``prctl``).
 """
 
 from __future__ import annotations
@@ -20,9 +22,10 @@ __all__ = ["libc", "release_free_memory"]
 
 @functools.cache
 def libc() -> ctypes.CDLL | None:
-    """The C library, or None where it cannot be loaded."""
+    """The C library (with ``errno`` kept for ``ctypes.get_errno``), or None where it cannot
+    be loaded. The one place the store and the service load it."""
     try:
-        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
     except OSError:
         return None
 

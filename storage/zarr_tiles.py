@@ -22,7 +22,6 @@ chunk of a huge sparse array); :meth:`ZarrTiles.stored_keys` walks the directory
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import os
 import re
 from collections.abc import Iterator
@@ -38,6 +37,7 @@ from zarr.core.buffer import default_buffer_prototype
 from zarr.storage import LocalStore
 
 from ._files import fsync_path
+from ._heap import libc
 
 __all__ = ["TILES_ARRAY", "TileArrayError", "ZarrTiles"]
 
@@ -82,10 +82,8 @@ _SYNCFS_FROM = 256
 
 def _syncfs(path: Path) -> bool:
     """``syncfs(2)`` of the file system holding ``path``; False where unavailable."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        syncfs = libc.syncfs
-    except (OSError, AttributeError):
+    syncfs = getattr(libc(), "syncfs", None)
+    if syncfs is None:
         return False
     fd = os.open(path, os.O_RDONLY)
     try:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import zarr
 from rangefuse.engine.grid import KEY_LIMIT
-from rangefuse.storage.zarr_tiles import TileArrayError, ZarrTiles
+from rangefuse.storage.zarr_tiles import TileArrayError, ZarrTiles, _syncfs
 from zarr.storage import LocalStore
 
 OFFSET = KEY_LIMIT
@@ -264,3 +264,9 @@ def test_remove_partials_after_a_killed_writer(tmp_path: Path) -> None:
     assert np.array_equal(tiles.stored_keys(), key)
     assert tiles.remove_partials() == 1
     assert not list(tiles.path.rglob("*.partial"))
+
+
+def test_syncfs_syncs_the_file_system_that_holds_a_path(tmp_path):
+    """Many chunks are made durable with one ``syncfs(2)`` (through the C library that the
+    store loads in one place, ``storage/_heap.py``)."""
+    assert _syncfs(tmp_path) is True
