@@ -66,15 +66,16 @@ Item = TypeVar("Item")
 Result = TypeVar("Result")
 
 
-#: Bytes of range maps a plan unit keeps as read from the archive (the planner reads each
-#: new scan twice, for its allocation and for its view): 256 scans of 64 x 1024.
+#: Bytes of range maps a unit keeps as read from the archive (the planner reads each new
+#: scan twice, for its allocation and for its view; a tile unit reads a scan once for each
+#: batch of tiles it has in view): 256 scans of 64 x 1024.
 RAW_SCAN_BYTES = 64 * 2**20
 
 
 class _Scans:
     """A scene's archived scans, prepared for the kernels on first use; the last two kept
-    prepared (a unit's memory is one scan or two, not the scene), and the scans as read
-    from the archive up to :data:`RAW_SCAN_BYTES` of range maps."""
+    prepared (a unit's memory is one scan or two, not the group's), and the scans as read
+    from the archive up to :data:`RAW_SCAN_BYTES` of range maps (at least the last one)."""
 
     def __init__(self, group: Path, params: FusionParams) -> None:
         self.archive = ScanArchive(group)
@@ -86,10 +87,10 @@ class _Scans:
     def __call__(self, scan_id: str) -> PreparedScan:
         prepared = self._prepared.get(scan_id)
         if prepared is None:
+            while len(self._prepared) > 1:  # before the next one is made: two at most
+                self._prepared.popitem(last=False)
             prepared = prepare_scan(self._read(scan_id), self.params)
             self._prepared[scan_id] = prepared
-            while len(self._prepared) > 2:
-                self._prepared.popitem(last=False)
         else:
             self._prepared.move_to_end(scan_id)
         return prepared
@@ -193,17 +194,16 @@ def integrate_unit(unit: TileUnit) -> UnitResult:
     """Carry out a unit: stage (and fsync) every tile it changes; returns what it informed.
 
     Tiles are the outer loop: each tile is read once and staged once, whatever the number
-    of scans (they are loaded from the archive first). No other unit of the group has any
-    of the unit's tiles.
+    of scans. A scan is prepared when a batch of tiles has it in view and not kept beyond
+    the next (``_Scans``): the unit's memory is its tile cache and a scan or two, not the
+    group's scans. No other unit of the group has any of the unit's tiles.
     """
     grid = GridSpec.from_dict(unit.grid)
-    params = FusionParams.from_dict(unit.params)
     group = Path(unit.group_path)
     tiles = ZarrTiles.open(group)
     staging = Staging(Path(unit.staging_path), tiles)
-    archive = ScanArchive(group)
+    load = _Scans(group, FusionParams.from_dict(unit.params))
     cache = TileCache(tiles, staging, int(unit.cache_mb * 2**20))
-    scans = [prepare_scan(archive.get(scan_id), params) for scan_id, _, _, _ in unit.steps]
     steps = [_sorted_step(rows, free) for _, rows, free, _ in unit.steps]
     hits: list[list[np.ndarray]] = [[] for _ in steps]
     n = len(unit.keys)
@@ -213,11 +213,11 @@ def integrate_unit(unit: TileUnit) -> UnitResult:
         end = min(n, start + cache.batch)
         keys = unit.keys[start:end]
         data = cache.fetch(keys, unit.new[start:end])
-        for k, prepared in enumerate(scans):
-            rows, free = steps[k]
+        for k, (rows, free) in enumerate(steps):
             a, b = np.searchsorted(rows, [start, end]).tolist()
             if a == b:
                 continue
+            prepared = load(unit.steps[k][0])
             t0 = time.perf_counter()
             count = integrate_seen(
                 prepared, grid, keys, data, rows[a:b] - start, free[a:b], unit.steps[k][3]
@@ -232,7 +232,7 @@ def integrate_unit(unit: TileUnit) -> UnitResult:
         scan_id: np.concatenate([steps[k][0][:0], *hits[k]])
         for k, (scan_id, *_) in enumerate(unit.steps)
     }
-    del cache, hits  # the tiles and the batches, before the heap is trimmed
+    del cache, hits, load  # the tiles, the batches and the scans, before the heap is trimmed
     release_free_memory()
     return UnitResult(informed=informed, voxel_updates=updates, fuse_seconds=fuse_seconds)
 

@@ -125,11 +125,11 @@ def test_adding_later_equals_all_at_once(tmp_path, room):
         _same_dense(scene.to_dense(), expected)
 
 
-def test_groups_take_scans_that_share_tiles_within_their_budgets(tmp_path, room, monkeypatch):
+def test_groups_take_scans_that_share_tiles_within_their_budgets(tmp_path, room):
     """A checkpoint per group (one progress call each): a group takes the next scan while
-    it has fewer than ``group_scans`` scans, at most GROUP_PIXELS pixels, and the scan lies
-    within GROUP_SPAN of the group's first scan, and its planner takes them while their
-    pairs fit GROUP_PAIRS; the bits are those of fusing all at once."""
+    it has fewer than ``group_scans`` scans and the scan lies within GROUP_SPAN of the
+    group's first scan, and its planner takes them while their pairs fit GROUP_PAIRS; the
+    bits are those of fusing all at once."""
     far = np.eye(4)
     far[0, 3] = 1000.0  # a kilometre away: its sphere meets none of the others'
     moved = [(f"{scan_id}-far", Scan(s.range_m, far @ s.T_W_S, s.sensor, s.noise))
@@ -148,9 +148,6 @@ def test_groups_take_scans_that_share_tiles_within_their_budgets(tmp_path, room,
 
     assert checkpoints(tmp_path / "a") == [3, 4, 7, 8]  # far, near again, far
     assert checkpoints(tmp_path / "b", group_scans=2) == [2, 3, 4, 6, 7, 8]
-    h, w = room.scans[0][1].range_m.shape
-    monkeypatch.setattr(groups, "GROUP_PIXELS", 2 * h * w)
-    assert checkpoints(tmp_path / "c") == [2, 3, 4, 6, 7, 8]
     # a group's planner takes its scans while their (scan, tile) pairs fit GROUP_PAIRS
     assert checkpoints(tmp_path / "e", group_pairs=1) == [1, 2, 3, 4, 5, 6, 7, 8]
     # an unreadable archive entry fails its own group, not the groups before it
@@ -179,9 +176,8 @@ def test_a_plan_comes_back_without_the_memory_of_its_candidates(tmp_path, room):
 
 def test_a_groups_scans_lie_within_its_span_of_the_first(room, monkeypatch):
     """A drive: a scan stays in the group while its origin lies within GROUP_SPAN times the
-    sum of its radius and the first scan's, up to the count and the pixels."""
+    sum of its radius and the first scan's, up to the count."""
     sensor = room.scans[0][1].sensor.to_dict()
-    h, w = room.scans[0][1].range_m.shape
 
     class Archive:
         def placement(self, scan_id):
@@ -199,8 +195,6 @@ def test_a_groups_scans_lie_within_its_span_of_the_first(room, monkeypatch):
     assert sizes(drive) == [7, 3]
     assert sizes([0.0, 30.0, 30.5]) == [2, 1]
     assert sizes(drive, most=4) == [4, 4, 2]
-    monkeypatch.setattr(groups, "GROUP_PIXELS", 3 * h * w)
-    assert sizes(drive) == [3, 3, 3, 1]
 
 
 def test_remove_then_re_add_is_exact(tmp_path, room):

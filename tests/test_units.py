@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
+from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume, prepare_scan
 from rangefuse.engine.synth import make_dataset
 from rangefuse.storage import open_store
 from rangefuse.storage.scene import SceneReport
@@ -124,6 +124,41 @@ def test_units_split_tiles_by_key_and_give_the_same_bits_in_any_number(tmp_path)
             assert len(keys) == len(work.written) == len(np.unique(keys, axis=0))
             scene._commit_group(work, ids, scene._run(work.units), SceneReport())
             dense.append(scene.to_dense())
+    assert np.array_equal(dense[0].logodds, dense[1].logodds, equal_nan=True)
+
+
+def test_a_unit_holds_a_scan_or_two_not_its_groups_scans(tmp_path, monkeypatch):
+    """A tile unit prepares a scan when a batch of its tiles has it in view and lets it go
+    after the next one (a group's size is not bounded by its pixels): with a cache of a few
+    tiles, many batches, at most two prepared scans alive at once, and the same bits."""
+    import weakref
+
+    from rangefuse.storage import units
+
+    data = make_dataset("room", views=6)
+    base = _base_store(tmp_path, data)
+    alive: weakref.WeakSet = weakref.WeakSet()
+    most = [0, 0]  # prepared scans alive at once, preparations
+
+    def prepare(scan, params):
+        prepared = prepare_scan(scan, params)
+        alive.add(prepared)
+        most[:] = [max(most[0], len(alive)), most[1] + 1]
+        return prepared
+
+    dense = []
+    for tracked in (False, True):
+        store = tmp_path / f"tracked{tracked}"
+        shutil.copytree(base, store)
+        with open_store(store, cache_mb=CACHE_MB if tracked else 64) as scene:
+            ids = [r.id for r in scene.scan_rows(("stored",))]
+            work = scene._group_work(ids)
+            if tracked:
+                monkeypatch.setattr(units, "prepare_scan", prepare)
+            scene._commit_group(work, ids, scene._run(work.units), SceneReport())
+            monkeypatch.undo()
+            dense.append(scene.to_dense())
+    assert most[0] <= 2 < len(ids) and most[1] > len(ids), most  # re-prepared per batch
     assert np.array_equal(dense[0].logodds, dense[1].logodds, equal_nan=True)
 
 
