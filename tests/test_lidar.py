@@ -445,3 +445,22 @@ def test_the_catalog_lists_the_tiles_in_key_ranges(tmp_path) -> None:
               if nxt[0] is None or b < nxt[0]]  # fmt: skip
     expected = np.concatenate([owned[(owned >= a) & (owned <= b)] for a, b in ranges])
     assert np.array_equal(catalog.tile_keys_in_ranges("s", ranges), expected)
+
+
+def test_the_catalogs_log_shrinks_back_after_a_large_group(tmp_path, monkeypatch) -> None:
+    """A group's checkpoint is one transaction of a row per (scan, tile); once SQLite has
+    checkpointed its log, the next transaction cuts the log back to WAL_LIMIT."""
+    from rangefuse.storage import catalog as catalog_module
+
+    monkeypatch.setattr(catalog_module, "WAL_LIMIT", 64 * 1024)
+    catalog = _catalog(tmp_path)
+    wal = tmp_path / "catalog.sqlite-wal"
+    keys = np.arange(50_000, dtype=np.int64)
+    with catalog.transaction():
+        for scan in "abcdefg":
+            catalog.add_tile_scans("s", scan, keys, np.zeros(len(keys), np.bool_))
+    # the group's log, past SQLite's automatic checkpoint (1,000 pages)
+    assert wal.stat().st_size > 4096 * 1000
+    with catalog.transaction():
+        catalog.add_tile_scans("s", "d", keys[:1], np.ones(1, np.bool_))
+    assert wal.stat().st_size <= 64 * 1024
