@@ -150,15 +150,18 @@ def test_groups_take_scans_that_share_tiles_within_their_budgets(tmp_path, room)
     assert checkpoints(tmp_path / "b", group_scans=2) == [2, 3, 4, 6, 7, 8]
     # a group's planner takes its scans while their (scan, tile) pairs fit GROUP_PAIRS
     assert checkpoints(tmp_path / "e", group_pairs=1) == [1, 2, 3, 4, 5, 6, 7, 8]
-    # an unreadable archive entry fails its own group, not the groups before it
-    with open_store(tmp_path / "d", _grid(), PARAMS) as scene:
-        for item in room.scans[:3]:
-            scene.store_scan(*item)
-        lost = room.scans[2][0]
-        scene.archive.delete(lost)
-        with pytest.raises(ArchiveError, match=lost):
-            scene.integrate_pending(group_scans=2)
-        assert [r.id for r in scene.scan_rows(("fused",))] == [i for i, _ in room.scans[:2]]
+    # an unreadable archive entry fails its own group, not the groups before it (also when
+    # the count would have put it with them)
+    for most in (2, 8):
+        with open_store(tmp_path / f"d{most}", _grid(), PARAMS) as scene:
+            for item in room.scans[:3]:
+                scene.store_scan(*item)
+            lost = room.scans[2][0]
+            scene.archive.delete(lost)
+            with pytest.raises(ArchiveError, match=lost):
+                scene.integrate_pending(group_scans=most)
+            fused = [r.id for r in scene.scan_rows(("fused",))]
+            assert fused == [i for i, _ in room.scans[:2]]
 
 
 def test_a_plan_comes_back_without_the_memory_of_its_candidates(tmp_path, room):
