@@ -333,28 +333,39 @@ def _classify_part(
     az0 = 0.0
     da_lo = 0.0
     da_hi = 0.0
-    for corner in range(8):
+    # the corners in pairs along z: a level pose's pair shares its sensor-frame x and y, so
+    # its azimuth and distance from the axis are computed once (a zero's sign aside, which
+    # changes neither rho nor, off the axis, the direction; on it the footprint is all
+    # azimuths whatever they are)
+    for corner in range(4):
         x = hi[0] if corner & 1 else lo[0]
         y = hi[1] if corner & 2 else lo[1]
-        z = hi[2] if corner & 4 else lo[2]
-        px = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + c[0]
-        py = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + c[1]
-        pz = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + c[2]
-        d_max = max(d_max, math.sqrt(px * px + py * py + pz * pz))
-        rho_hi = max(rho_hi, math.sqrt(px * px + py * py))
-        x_lo, x_hi = min(x_lo, px), max(x_hi, px)
-        y_lo, y_hi = min(y_lo, py), max(y_hi, py)
-        z_lo, z_hi = min(z_lo, pz), max(z_hi, pz)
-        az = math.atan2(py, px)
-        if corner == 0:
-            az0 = az
-        da = az - az0  # in (-pi, pi) once wrapped: the corners span less than half a turn
-        if da > math.pi:
-            da -= 2.0 * math.pi
-        elif da < -math.pi:
-            da += 2.0 * math.pi
-        da_lo = min(da_lo, da)
-        da_hi = max(da_hi, da)
+        px_lo = py_lo = 0.0
+        for top in range(2):
+            z = hi[2] if top else lo[2]
+            px = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + c[0]
+            py = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + c[1]
+            pz = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + c[2]
+            d_max = max(d_max, math.sqrt(px * px + py * py + pz * pz))
+            x_lo, x_hi = min(x_lo, px), max(x_hi, px)
+            y_lo, y_hi = min(y_lo, py), max(y_hi, py)
+            z_lo, z_hi = min(z_lo, pz), max(z_hi, pz)
+            if top and px == px_lo and py == py_lo:
+                continue  # the same azimuth and rho as the pair's lower corner
+            px_lo = px
+            py_lo = py
+            rho = math.sqrt(px * px + py * py)
+            rho_hi = max(rho_hi, rho)
+            az = math.atan2(py, px)
+            if corner == 0 and top == 0:
+                az0 = az
+            da = az - az0  # in (-pi, pi) once wrapped: the corners span less than half a turn
+            if da > math.pi:
+                da -= 2.0 * math.pi
+            elif da < -math.pi:
+                da += 2.0 * math.pi
+            da_lo = min(da_lo, da)
+            da_hi = max(da_hi, da)
     # nearest distance from the axis: of the corners' box in x and y (it holds the polygon)
     gx = x_lo if x_lo > 0.0 else (-x_hi if x_hi < 0.0 else 0.0)
     gy = y_lo if y_lo > 0.0 else (-y_hi if y_hi < 0.0 else 0.0)
