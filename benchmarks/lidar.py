@@ -124,7 +124,7 @@ def _child_rangefuse(cfg: dict) -> dict:
     _warm(scans, h)
     grid = GridSpec(h, cfg["tile"], "mapping")
     params = _params(h)
-    out: dict = dict.fromkeys(("disk_mb", "store_s", "integrate_s", "fuse_s", "written"))
+    out: dict = dict.fromkeys(("disk_mb", "store_s", "integrate_s", "fuse_s", "written", "files"))
     t0 = time.perf_counter()
     if cfg["where"] == "memory":
         volume = Volume(grid, params)
@@ -148,6 +148,7 @@ def _child_rangefuse(cfg: dict) -> dict:
             out["integrate_s"] = seconds - out["store_s"]
             keys = scene.tile_keys()
             out["disk_mb"] = scene.info()["bytes_on_disk"] / 2**20
+            out["files"] = sum(len(f) for _, _, f in os.walk(scene.tiles.path / "c"))
     return {
         **cfg,
         **out,
@@ -228,10 +229,11 @@ def _io(r: dict) -> str:
     # a store run: the share of its integration spent in the fusion kernel (the rest is
     # reading, staging and publishing chunks, planning and the catalog) and the tiles it
     # wrote per scan (each tile once per group of scans: what the groups save)
+    # and the files of its tile array (one per tile, or per shard of tiles: docs/storage.md)
     if r.get("fuse_s") is None:
-        return f" {'-':>6} {'-':>7}"
+        return f" {'-':>6} {'-':>7} {'-':>7}"
     share = 100 * r["fuse_s"] / max(r["integrate_s"], 1e-9)
-    return f" {share:5.0f}% {r['written'] / r['scans']:7.0f}"
+    return f" {share:5.0f}% {r['written'] / r['scans']:7.0f} {r['files']:7d}"
 
 
 def _per_update(r: dict, per_scan: float) -> str:
@@ -327,7 +329,7 @@ def main() -> None:
         f"{'voxel':>6} {'length':>7} {'tool':>18} {'scans':>5} {'time s':>8} {'ms/scan':>8} "
         f"{'scans/s':>7} {'store+fuse':>12} {'tiles':>9} {'disk MB':>8} {'dense GB':>9} "
         f"{'RSS MB':>7} {'data MB':>7} {'Mupd/scan':>9} {'ns/upd':>6} {'kernel':>6} "
-        f"{'wr/scan':>7}"
+        f"{'wr/scan':>7} {'files':>7}"
     )
     print(
         f"street, spherical LiDAR 64x1024 (max range 80 m), one scan per "

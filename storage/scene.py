@@ -67,7 +67,7 @@ from .units import (
     plan_unit,
     tile_scan_rows,
 )
-from .zarr_tiles import ZarrTiles
+from .zarr_tiles import TileArrayError, ZarrTiles
 
 __all__ = ["Scene", "SceneReport", "open_scene", "open_store"]
 
@@ -323,7 +323,10 @@ class Scene:
     def _discard_staging(self) -> int:
         """Drop what attempts that never reached their checkpoint staged; returns the
         tiles."""
-        staged = sum(len(Staging(f, self.tiles).staged_keys()) for f in self._staged_folders())
+        staged = 0
+        for folder in self._staged_folders():
+            with contextlib.suppress(TileArrayError):  # a damaged pack is discarded all the same
+                staged += len(Staging(folder, self.tiles).staged_keys())
         shutil.rmtree(self.staging_root, ignore_errors=True)
         return staged
 
@@ -349,7 +352,7 @@ class Scene:
         deleted = none if deleted is None else deleted
         if len(deleted):
             staging.delete(unpack_keys(deleted))
-            staging.fsync(unpack_keys(deleted))
+            staging.finish()
         with self.catalog.transaction():
             for scan_id, tiles, owner in rows:
                 self.catalog.add_tile_scans(self.scene_id, scan_id, tiles, owner)

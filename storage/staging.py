@@ -1,159 +1,275 @@
 """Where units of work write their tiles until a checkpoint publishes them (docs/storage.md,
-"Units that can run again").
+"Units that can run again"; docs/sharded-tiles.md, "Writing").
 
-A unit never writes a scene's committed chunks: it reads them, and writes each tile it
-changes here, under ``<scene>/staging/c/<i>/<j>/<k>`` (the chunk's own name and bytes; a
-tile that became all unknown is an empty file, a *tombstone*). A unit killed at any point
-and run again therefore starts from the same committed state and writes the same bytes.
-Once the catalog has committed a group's checkpoint, :meth:`Staging.publish` moves the
-staged chunks over the committed ones (and deletes the tombstoned ones); it is idempotent,
-so a publish cut short is finished at the next open. Without a committed checkpoint, the
-staged chunks are discarded.
+A unit never writes a scene's committed chunks: it reads them, and stages each tile it
+changes here, in *packs*: one file per write of its tile cache, ``<unit>.<run>.<n>.pack`` in
+the attempt's folder, holding the encoded chunks one after the other and a footer of their
+keys, offsets and lengths (a tile that became all unknown has length 0, a *tombstone*).
+When the unit is done it fsyncs its packs and writes ``<unit>.<run>.done`` (how many packs
+the run wrote). A run killed at any point leaves no ``done`` file, and its packs are never
+read; a unit run twice at once writes beside itself (``run`` is a fresh token), and any
+finished run of a unit holds the same tiles (units are deterministic).
 
-Each chunk is written to a temporary file and renamed, as zarr's ``LocalStore`` does, so a
-staged chunk is never torn; paths are plain strings and each folder is made once (per
-chunk, ``pathlib`` and a ``mkdir`` cost as much as the write itself).
+Once the catalog has committed a group's checkpoint, :meth:`Staging.publish` writes the
+staged chunks of one finished run per unit into the tile array (the last state of each
+tile; a tombstone deletes it; the scene's own deletions, staged as unit ``scene``, last),
+makes that durable, then empties the folder. Writing the same chunks again gives the same
+array, so a publish cut short is finished at the next open. Without a committed checkpoint,
+the staged packs are discarded.
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
 import shutil
 import uuid
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
+from rangefuse.engine.grid import pack_keys, unpack_keys
 
-from .zarr_tiles import (
-    KEY_OFFSET,
-    TileArrayError,
-    ZarrTiles,
-    fsync_paths,
-    stored_chunk_keys,
-    tile_rows,
-)
+from ._files import fsync_path
+from .zarr_tiles import KEY_OFFSET, TileArrayError, ZarrTiles, stored_chunk_keys, tile_rows
 
 __all__ = ["Staging"]
 
+_MAGIC = b"RFPACK1\n"
+#: A publish writes at most this many tiles, or this many bytes of chunks, at once.
+_PUBLISH_TILES = 4096
+_PUBLISH_BYTES = 64 * 2**20
+#: The unit name of the scene's own deletions (published after the units').
+SCENE_UNIT = "scene"
+
 
 class Staging:
-    """The staging area of one scene, for the chunks of its tile array ``tiles``."""
+    """The staging area of one attempt of a scene, for the chunks of its tile array
+    ``tiles``; this object writes as one run of the unit ``unit``."""
 
-    def __init__(self, folder: Path, tiles: ZarrTiles) -> None:
+    def __init__(self, folder: Path, tiles: ZarrTiles, unit: str = SCENE_UNIT) -> None:
+        if not unit or not unit.isalnum():
+            raise ValueError(f"unit: must be a non-empty alphanumeric name, got {unit!r}")
         self.folder = Path(folder)
         self.tiles = tiles
-        self._made: set[str] = set()  # folders known to exist
-        # temporary files are <chunk>.<token><n>.partial: unique to this object (a unit run
-        # twice at once writes beside itself), without a uuid4 per chunk (10 us each)
-        self._token = uuid.uuid4().hex
-        self._serial = 0
+        self.unit = unit
+        self._run = uuid.uuid4().hex
+        self._packs: list[str] = []  # this run's packs, in order
+        self._where: dict[int, tuple[int, int, int]] = {}  # packed key -> pack, offset, length
 
-    def _names(self, keys: np.ndarray) -> list[str]:
-        return [f"c/{i}/{j}/{k}" for i, j, k in (keys + KEY_OFFSET).tolist()]
-
-    def _folder(self, path: str) -> None:
-        folder = os.path.dirname(path)
-        if folder not in self._made:
-            os.makedirs(folder, exist_ok=True)
-            self._made.add(folder)
-
-    def _put(self, path: str, payload: bytes) -> None:
-        """Write ``path`` through a temporary file and a rename (never torn)."""
-        self._folder(path)
-        self._serial += 1
-        tmp = f"{path}.{self._token}{self._serial}.partial"
-        try:
-            with open(tmp, "wb") as fh:
-                fh.write(payload)
-            os.replace(tmp, path)
-        except BaseException:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
-            raise
-
+    # --- one run's packs -----------------------------------------------------------------
     def write(self, keys: np.ndarray, data: Sequence[np.ndarray]) -> None:
         """Stage whole tiles (each int64 (T, T, T): an (n, T, T, T) array or a list of the
         cache's tiles, which need no copy into one array); an all-unknown tile as a
-        tombstone."""
+        tombstone. One pack per call."""
         keys = np.asarray(keys, np.int64).reshape(-1, 3)
-        root = str(self.folder)
-        for tile, name in zip(data, self._names(keys), strict=True):
-            self._put(f"{root}/{name}", self.tiles.encode(tile) if tile.any() else b"")
+        self._pack(keys, [self.tiles.encode(t) if t.any() else b"" for t in data])
 
     def delete(self, keys: np.ndarray) -> None:
         """Stage the deletion of tiles (tombstones)."""
-        root = str(self.folder)
-        for name in self._names(np.asarray(keys, np.int64).reshape(-1, 3)):
-            self._put(f"{root}/{name}", b"")
+        keys = np.asarray(keys, np.int64).reshape(-1, 3)
+        self._pack(keys, [b""] * len(keys))
+
+    def _pack(self, keys: np.ndarray, payloads: list[bytes]) -> None:
+        if len(payloads) != len(keys):
+            raise ValueError(f"{len(payloads)} tiles for {len(keys)} keys")
+        if not len(keys):
+            return
+        if not self._packs:
+            os.makedirs(self.folder, exist_ok=True)
+        lengths = np.array([len(p) for p in payloads], np.int64)
+        offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
+        footer = np.column_stack([keys, offsets, lengths]).astype("<i8").tobytes()
+        path = f"{self.folder}/{self.unit}.{self._run}.{len(self._packs) + 1}.pack"
+        with open(path, "wb") as fh:
+            fh.write(b"".join([*payloads, footer, np.int64(len(keys)).astype("<i8").tobytes()]))
+            fh.write(_MAGIC)
+        self._packs.append(path)
+        n = len(self._packs) - 1
+        for p, offset, length in zip(
+            pack_keys(keys).tolist(), offsets.tolist(), lengths.tolist(), strict=True
+        ):
+            self._where[p] = (n, offset, length)
 
     def read(
         self, keys: np.ndarray, out: np.ndarray | None = None, rows: np.ndarray | None = None
     ) -> np.ndarray:
-        """Staged tiles (they must have been staged); a tombstone reads as unknown. ``out``
-        and ``rows`` as in :meth:`ZarrTiles.read`."""
+        """Tiles this run staged (they must have been); a tombstone reads as unknown.
+        ``out`` and ``rows`` as in :meth:`ZarrTiles.read`."""
         keys = np.asarray(keys, np.int64).reshape(-1, 3)
         out, flat, at = tile_rows(out, rows, len(keys), self.tiles.tile_size)
-        root = str(self.folder)
-        for n, name in enumerate(self._names(keys)):
-            path = f"{root}/{name}"
-            try:
-                with open(path, "rb") as fh:
-                    raw = fh.read()
-            except FileNotFoundError:
-                raise TileArrayError(f"tile {keys[n].tolist()} was not staged") from None
-            if raw:
-                flat[at[n]] = self.tiles.decode(raw, f"staged tile {keys[n].tolist()}: {path}")
-            else:
-                flat[at[n]] = 0
+        where = []
+        for n, p in enumerate(pack_keys(keys).tolist()):
+            if p not in self._where:
+                raise TileArrayError(f"tile {keys[n].tolist()} was not staged")
+            where.append((*self._where[p], n))
+        for pack, payloads in _payloads(self._packs, sorted(where)):
+            for n, raw in payloads:
+                what = f"staged tile {keys[n].tolist()}: {pack}"
+                flat[at[n]] = self.tiles.decode(raw, what) if raw else 0
         return out
 
-    def fsync(self, keys: np.ndarray) -> None:
-        """Make the staged state of ``keys`` durable."""
-        keys = np.asarray(keys, np.int64).reshape(-1, 3)
-        fsync_paths(self.folder, self._names(keys))
+    def finish(self) -> None:
+        """Make this run's packs durable and mark the run finished (its ``done`` file)."""
+        if not self._packs and not self.folder.is_dir():
+            os.makedirs(self.folder, exist_ok=True)
+        for path in self._packs:
+            fd = os.open(path, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        done = self.folder / f"{self.unit}.{self._run}.done"
+        with open(done, "w") as fh:
+            fh.write(str(len(self._packs)))
+            fh.flush()
+            os.fsync(fh.fileno())
+        fsync_path(self.folder)
+
+    # --- the attempt's folder ------------------------------------------------------------
+    def _finished_packs(self) -> list[str]:
+        """The packs of one finished run of each unit, the scene's last, each unit's in
+        order."""
+        runs: dict[str, tuple[str, int]] = {}
+        try:
+            names = sorted(os.listdir(self.folder))
+        except FileNotFoundError:
+            return []
+        for name in names:
+            parts = name.split(".")
+            if len(parts) != 3 or parts[2] != "done" or parts[0] in runs:
+                continue
+            try:
+                count = int((self.folder / name).read_text())
+            except ValueError:
+                raise TileArrayError(f"staged run {self.folder / name} is corrupt") from None
+            runs[parts[0]] = (parts[1], count)
+        units = sorted(runs, key=lambda u: (u == SCENE_UNIT, u))
+        return [
+            f"{self.folder}/{u}.{runs[u][0]}.{n}.pack"
+            for u in units
+            for n in range(1, runs[u][1] + 1)
+        ]
+
+    def _index(self) -> tuple[list[str], np.ndarray, np.ndarray]:
+        """The finished runs' packs, the packed keys they staged (sorted) and, for each, its
+        last ``(pack, offset, length)`` (int64 (n, 3))."""
+        packs = self._finished_packs()
+        keys, where = [np.zeros(0, np.int64)], [np.zeros((0, 3), np.int64)]
+        for n, path in enumerate(packs):
+            footer = _footer(path)
+            keys.append(pack_keys(footer[:, :3]))
+            where.append(np.column_stack([np.full(len(footer), n), footer[:, 3:]]))
+        packed, at = np.concatenate(keys), np.concatenate(where)
+        # the last staging of each key: unique over the reversed order keeps the last one
+        unique, last = np.unique(packed[::-1], return_index=True)
+        return packs, unique, at[::-1][last]
 
     def staged_keys(self) -> np.ndarray:
-        """Keys of every staged chunk and tombstone (sorted int64 (n, 3))."""
-        return stored_chunk_keys(self.folder / "c")
+        """Keys of every tile the finished runs staged (sorted int64 (n, 3))."""
+        return unpack_keys(self._index()[1])
 
     def publish(self) -> int:
-        """Move every staged chunk over the committed one (a tombstone deletes it), make that
-        durable, then empty the staging area. Idempotent; returns the tiles published.
-
-        A staged folder ``c/<i>/<j>`` whose committed twin does not exist yet (new ground)
-        moves whole, its tombstones dropped first; in a committed folder, chunk by chunk.
-        """
-        keys = self.staged_keys()
-        live_c = str(self.tiles.path / "c")
-        staged_c = str(self.folder / "c")
-        for i, j in np.unique(keys[:, :2] + KEY_OFFSET, axis=0).tolist():
-            staged = f"{staged_c}/{i}/{j}"
-            live = f"{live_c}/{i}/{j}"
-            entries = list(os.scandir(staged))
-            chunks = [e for e in entries if e.name.isdigit()]
-            if not os.path.isdir(live):
-                for entry in entries:  # tombstones (nothing committed to delete), orphans
-                    if not entry.name.isdigit() or entry.stat().st_size == 0:
-                        os.unlink(entry.path)
-                os.makedirs(f"{live_c}/{i}", exist_ok=True)
-                os.replace(staged, live)
-                continue
-            for entry in chunks:
-                target = f"{live}/{entry.name}"
-                if entry.stat().st_size == 0:
-                    with contextlib.suppress(FileNotFoundError):
-                        os.unlink(target)
-                    os.unlink(entry.path)
-                else:
-                    os.replace(entry.path, target)
+        """Write the finished runs' staged chunks into the tile array (a tombstone deletes
+        the tile), make that durable, then empty the staging area. Idempotent; returns the
+        tiles published."""
+        legacy = self._publish_version_3()
+        packs, packed, where = self._index()
+        keys = unpack_keys(packed)
+        B = self.tiles.shard
+        shard = np.zeros(len(keys), np.int64)
         if len(keys):
-            self.tiles.fsync(keys)
+            shard = np.unique((keys + KEY_OFFSET) // B, axis=0, return_inverse=True)[1]
+            shard = shard.reshape(-1)
+        order = np.lexsort((where[:, 1], where[:, 0], shard))  # a shard's tiles together
+        for batch in _batches(shard[order], where[order, 2]):
+            rows = order[batch]
+            payloads: list[bytes] = [b""] * len(rows)
+            spots = sorted((*where[r].tolist(), n) for n, r in enumerate(rows.tolist()))
+            for _, found in _payloads(packs, spots):
+                for n, raw in found:
+                    payloads[n] = raw
+            self.tiles.put(keys[rows], payloads)
+        if len(keys) or len(legacy):
+            self.tiles.fsync(np.concatenate([keys, legacy]))
+        for name in os.listdir(self.folder) if self.folder.is_dir() else ():
+            if name.endswith(".done"):  # first: a cut-short discard leaves nothing to publish
+                os.unlink(self.folder / name)
+        if self.folder.is_dir():
+            fsync_path(self.folder)
         self.discard()
-        return len(keys)
+        return len(keys) + len(legacy)
+
+    def _publish_version_3(self) -> np.ndarray:
+        """Write what a version-3 rangefuse staged (a chunk file per tile under ``c/``, an
+        empty one a tombstone) and was killed publishing; returns its keys."""
+        keys = stored_chunk_keys(self.folder / "c")
+        for start in range(0, len(keys), _PUBLISH_TILES):
+            part = keys[start : start + _PUBLISH_TILES]
+            payloads = []
+            for i, j, k in (part + KEY_OFFSET).tolist():
+                with open(f"{self.folder}/c/{i}/{j}/{k}", "rb") as fh:
+                    payloads.append(fh.read())
+            self.tiles.put(part, payloads)
+        return keys
 
     def discard(self) -> None:
         """Drop whatever is staged (a group that was never committed)."""
         shutil.rmtree(self.folder, ignore_errors=True)
-        self._made.clear()
+
+
+def _footer(path: str) -> np.ndarray:
+    """A pack's footer: int64 (n, 5) of key, offset and length per staged tile."""
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            size = fh.tell()
+            if size < 16:
+                raise ValueError(f"{size} bytes")
+            fh.seek(size - 16)
+            tail = fh.read(16)
+            n = int(np.frombuffer(tail[:8], "<i8")[0])
+            if tail[8:] != _MAGIC or not 0 <= n <= (size - 16) // 40:
+                raise ValueError("no footer")
+            fh.seek(size - 16 - 40 * n)
+            footer = np.frombuffer(fh.read(40 * n), "<i8").reshape(n, 5).astype(np.int64)
+    except FileNotFoundError:
+        raise TileArrayError(f"staged pack {path} is missing") from None
+    except ValueError as exc:
+        raise TileArrayError(f"staged pack {path} is corrupt ({exc})") from None
+    if n and (footer[:, 3:].min() < 0 or (footer[:, 3] + footer[:, 4]).max() > size - 16 - 40 * n):
+        raise TileArrayError(f"staged pack {path} is corrupt (a tile lies outside it)")
+    return footer
+
+
+def _payloads(
+    packs: Sequence[str], spots: Sequence[tuple[int, int, int, int]]
+) -> Iterator[tuple[str, list[tuple[int, bytes]]]]:
+    """For ``spots`` ``(pack, offset, length, n)`` sorted by pack and offset: per pack, its
+    path and ``(n, bytes)`` of each spot (each pack opened once)."""
+    start = 0
+    while start < len(spots):
+        pack = spots[start][0]
+        end = start
+        while end < len(spots) and spots[end][0] == pack:
+            end += 1
+        found = []
+        with open(packs[pack], "rb") as fh:
+            for _, offset, length, n in spots[start:end]:
+                found.append((n, os.pread(fh.fileno(), length, offset) if length else b""))
+        yield packs[pack], found
+        start = end
+
+
+def _batches(shard: np.ndarray, nbytes: np.ndarray) -> Iterator[np.ndarray]:
+    """Rows (sorted by ``shard``) in runs of at most ``_PUBLISH_TILES`` tiles or
+    ``_PUBLISH_BYTES`` bytes, cut between shards where a shard is smaller than that."""
+    total = np.concatenate([[0], np.cumsum(nbytes)])
+    start, n = 0, len(shard)
+    while start < n:
+        by_bytes = int(np.searchsorted(total, total[start] + _PUBLISH_BYTES, side="right")) - 1
+        end = min(n, start + _PUBLISH_TILES, max(start + 1, by_bytes))
+        if end < n:
+            cut = int(np.searchsorted(shard, shard[end], side="left"))
+            end = cut if cut > start else end
+        yield np.arange(start, end)
+        start = end

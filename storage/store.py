@@ -42,8 +42,8 @@ __all__ = [
 #: The layout this rangefuse writes. Version 1 (tiles written in place, a journal of tiles in
 #: flight rebuilt at open) is read and upgraded on open: its marker is rewritten, and a
 #: scene's journal is rebuilt the first time the scene is opened (docs/storage.md).
-STORE_VERSION = 3
-_READS_VERSIONS = (1, 2, 3)
+STORE_VERSION = 4
+_READS_VERSIONS = (1, 2, 3, 4)
 _MARKER = "rangefuse-store.json"
 #: What a store holds before its marker is written: a creation killed midway is resumed.
 _CREATION_NAMES = frozenset(

@@ -170,7 +170,8 @@ class TileUnit:
     ``steps`` lists ``(scan_id, rows, free, sign)``: the rows of ``keys`` the archived scan
     has in view, whether it sees each as free space throughout, and 1 to add it or -1 to
     subtract it (exact removal). ``new`` marks tiles that start from unknown instead of their
-    committed chunk (created, or rebuilt).
+    committed chunk (created, or rebuilt). ``name`` tells the unit from the group's others
+    in the staging area (``u<n>``).
     """
 
     group_path: str
@@ -181,6 +182,7 @@ class TileUnit:
     new: np.ndarray
     steps: list[tuple[str, np.ndarray, np.ndarray, int]]
     cache_mb: float
+    name: str = "u0"
 
 
 @dataclass(frozen=True)
@@ -201,7 +203,7 @@ def integrate_unit(unit: TileUnit) -> UnitResult:
     grid = GridSpec.from_dict(unit.grid)
     group = Path(unit.group_path)
     tiles = ZarrTiles.open(group)
-    staging = Staging(Path(unit.staging_path), tiles)
+    staging = Staging(Path(unit.staging_path), tiles, unit.name)
     load = _Scans(group, FusionParams.from_dict(unit.params))
     cache = TileCache(tiles, staging, int(unit.cache_mb * 2**20))
     steps = [_sorted_step(rows, free) for _, rows, free, _ in unit.steps]
@@ -227,7 +229,8 @@ def integrate_unit(unit: TileUnit) -> UnitResult:
             updates += int(count.sum())
         cache.store(keys, data)
         del data  # the cache holds the batch's tiles now
-    staging.fsync(unpack_keys(cache.flush()))
+    cache.flush()
+    staging.finish()
     informed = {
         scan_id: np.concatenate([steps[k][0][:0], *hits[k]])
         for k, (scan_id, *_) in enumerate(unit.steps)
@@ -275,7 +278,7 @@ def make_units(
                 rows = local[view.rows[sel]].astype(row_type)
                 steps[p].append((view.scan_id, rows, view.free[sel], view.sign))
     return [
-        TileUnit(keys=keys[mine], new=new[mine], steps=steps[p], **where)
+        TileUnit(keys=keys[mine], new=new[mine], steps=steps[p], name=f"u{p}", **where)
         for p, mine in enumerate(mines)
     ]
 

@@ -1,4 +1,5 @@
-"""The tile array of one scene: one Zarr v3 chunk per tile (docs/storage.md, layout 1).
+"""The tile array of one scene: one Zarr v3 chunk per tile (docs/storage.md, layout 1), in
+shards of ``B^3`` tiles since layout version 4 (docs/sharded-tiles.md, :mod:`.shards`).
 
 The array ``tiles`` of a scene's Zarr group holds int64 packed voxels (see
 :mod:`engine.certainty`; 0 is *unknown*, the fill value). Its chunk is one tile ``(T, T, T)``
@@ -14,6 +15,12 @@ bytes are those zarr itself writes (the tests compare them), and each chunk is s
 through zarr's ``LocalStore`` (temporary file then rename, so a chunk is never torn; a kill
 leaves ``<chunk>.<32 hex>.partial`` orphans, see :meth:`ZarrTiles.remove_partials`). Zarr never
 fsyncs: :meth:`ZarrTiles.fsync` makes written chunks durable.
+
+A sharded array (new scenes, ``B = 64 // T`` tiles a side: 4 for 16^3 tiles) keeps the same
+shape, keys and inner chunk bytes; a tile's chunk is an inner chunk of the shard file
+``tiles/c/<i // B>/<j // B>/<k // B>``, and a write rewrites each shard it touches whole
+(:func:`~storage.shards.merge_shard`). Arrays of version-3 scenes (unsharded) are read and
+written as they are.
 
 Never ask zarr for ``nchunks_initialized`` or to list this array (it walks every possible
 chunk of a huge sparse array); :meth:`ZarrTiles.stored_keys` walks the directory instead.
@@ -38,6 +45,14 @@ from zarr.storage import LocalStore
 
 from ._files import fsync_path
 from ._heap import libc
+from .shards import (
+    MAX_SHARD,
+    ShardError,
+    inner_chunks,
+    merge_shard,
+    read_shard,
+    tiles_per_shard_side,
+)
 
 __all__ = ["TILES_ARRAY", "TileArrayError", "ZarrTiles"]
 
@@ -55,6 +70,7 @@ MAX_TILE_SIZE = 256
 #: Temporary files of zarr's LocalStore: ``path.with_suffix(f".{uuid4().hex}.partial")``.
 _PARTIAL = re.compile(r"\.[0-9a-f]{32}\.partial\Z")
 _BYTES_CODEC = {"name": "bytes", "configuration": {"endian": "little"}}
+_INDEX_CODECS = [_BYTES_CODEC, {"name": "crc32c"}]
 
 
 class TileArrayError(ValueError):
@@ -100,7 +116,14 @@ class ZarrTiles:
     One process writes a given tile at a time (docs/storage.md, "One writer per tile").
     """
 
-    def __init__(self, group_path: Path, array: zarr.Array, tile_size: int, zstd_level: int | None):
+    def __init__(
+        self,
+        group_path: Path,
+        array: zarr.Array,
+        tile_size: int,
+        zstd_level: int | None,
+        shard: int = 1,
+    ) -> None:
         self.group_path = Path(group_path)
         #: The directory of the array (``<group>/tiles``).
         self.path = self.group_path / TILES_ARRAY
@@ -111,11 +134,15 @@ class ZarrTiles:
         self._prototype = default_buffer_prototype()
         self._zstd = None if zstd_level is None else Zstd(level=zstd_level)
         self._nbytes = 8 * self.tile_size**3
+        #: Tiles per shard side (1: an unsharded array, one file per tile).
+        self.shard = int(shard)
 
     # --- creating and opening --------------------------------------------------------------
     @classmethod
-    def create(cls, group_path: Path, tile_size: int) -> ZarrTiles:
-        """Create the tile array in the Zarr v3 group at ``group_path`` (created if missing).
+    def create(cls, group_path: Path, tile_size: int, shard: int | None = None) -> ZarrTiles:
+        """Create the tile array in the Zarr v3 group at ``group_path`` (created if missing),
+        in shards of ``shard`` tiles a side (1: unsharded; default
+        :func:`~storage.shards.tiles_per_shard_side`).
 
         Its metadata files and folders are fsynced before returning.
 
@@ -130,6 +157,9 @@ class ZarrTiles:
         T = int(tile_size)
         if not 1 <= T <= MAX_TILE_SIZE:
             raise TileArrayError(f"tile_size: must be in [1, {MAX_TILE_SIZE}] voxels, got {T}")
+        B = tiles_per_shard_side(T) if shard is None else int(shard)
+        if not 1 <= B <= MAX_SHARD:
+            raise TileArrayError(f"shard: must be in [1, {MAX_SHARD}] tiles a side, got {B}")
         if (group_path / TILES_ARRAY / "zarr.json").exists():
             raise TileArrayError(f"{group_path} already has a tile array")
         new_dirs = [p for p in (group_path, *group_path.parents) if not p.exists()]
@@ -138,6 +168,7 @@ class ZarrTiles:
             TILES_ARRAY,
             shape=(TILES_PER_AXIS * T,) * 3,
             chunks=(T,) * 3,
+            shards=None if B == 1 else (B * T,) * 3,
             dtype="int64",
             fill_value=0,
             compressors=zarr.codecs.ZstdCodec(level=ZSTD_LEVEL, checksum=False),
@@ -151,7 +182,7 @@ class ZarrTiles:
             *(d.parent for d in new_dirs),
         ):
             fsync_path(path)
-        return cls(group_path, array, T, ZSTD_LEVEL)
+        return cls(group_path, array, T, ZSTD_LEVEL, B)
 
     @classmethod
     def open(cls, group_path: Path) -> ZarrTiles:
@@ -171,20 +202,34 @@ class ZarrTiles:
         array = zarr.open_array(LocalStore(group_path), path=TILES_ARRAY, mode="r+", zarr_format=3)
         meta: dict[str, Any] = array.metadata.to_dict()
         chunk_shape = tuple(meta["chunk_grid"]["configuration"]["chunk_shape"])
-        T = int(chunk_shape[0])
         codecs = [dict(c) for c in meta["codecs"]]
+        problems = []
+        B = 1
+        if len(codecs) == 1 and codecs[0].get("name") == "sharding_indexed":
+            conf = dict(codecs[0].get("configuration", {}))
+            inner = tuple(conf.get("chunk_shape", ()))
+            codecs = [dict(c) for c in conf.get("codecs", [])]
+            if len(inner) == 3 and inner[0] > 0 and len(chunk_shape) == 3:
+                B = int(chunk_shape[0]) // int(inner[0])
+            if len(inner) != 3 or tuple(chunk_shape) != tuple(B * int(n) for n in inner):
+                problems.append(f"shard shape {chunk_shape} for inner chunks {inner}")
+            elif [dict(c) for c in conf.get("index_codecs", [])] != _INDEX_CODECS or conf.get(
+                "index_location"
+            ) != "end":
+                problems.append("shard index (expected bytes + crc32c at the end)")
+            chunk_shape = inner
+        T = int(chunk_shape[0]) if chunk_shape else 0
         zstd_level: int | None = None
         if len(codecs) == 2 and codecs[1].get("name") == "zstd":
             conf = codecs[1].get("configuration", {})
             if conf.get("checksum") is False:
                 zstd_level = int(conf["level"])
                 codecs = codecs[:1]
-        problems = []
         if meta["data_type"] != "int64":
             problems.append(f"dtype {meta['data_type']} (expected int64)")
         if len(chunk_shape) != 3 or len(set(chunk_shape)) != 1:
             problems.append(f"chunk shape {chunk_shape} (expected a cube)")
-        elif tuple(meta["shape"]) != (TILES_PER_AXIS * T,) * 3:
+        elif T < 1 or tuple(meta["shape"]) != (TILES_PER_AXIS * T,) * 3:
             problems.append(f"shape {tuple(meta['shape'])} (expected {TILES_PER_AXIS} tiles/axis)")
         if meta["fill_value"] != 0:
             problems.append(f"fill value {meta['fill_value']!r} (expected 0)")
@@ -196,7 +241,7 @@ class ZarrTiles:
             raise TileArrayError(
                 f"{group_path / TILES_ARRAY} is not a rangefuse tile array: {'; '.join(problems)}"
             )
-        return cls(group_path, array, T, zstd_level)
+        return cls(group_path, array, T, zstd_level, B)
 
     # --- tiles -----------------------------------------------------------------------------
     def _check_keys(self, keys: Any) -> np.ndarray:
@@ -213,11 +258,27 @@ class ZarrTiles:
         return arr
 
     def _chunk_names(self, keys: np.ndarray) -> Iterator[str]:
-        for i, j, k in (keys + KEY_OFFSET).tolist():
+        """The file of each key: its chunk, or its shard's file in a sharded array."""
+        B = self.shard
+        for i, j, k in ((keys + KEY_OFFSET) // B).tolist():
             yield f"{TILES_ARRAY}/c/{i}/{j}/{k}"
 
+    def _by_shard(self, keys: np.ndarray) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
+        """``(file, rows, inner index)`` of the keys of each shard the keys touch."""
+        B = self.shard
+        index = keys + KEY_OFFSET
+        outer, inner = index // B, index % B
+        flat_inner = (inner[:, 0] * B + inner[:, 1]) * B + inner[:, 2]
+        shards, which = np.unique(outer, axis=0, return_inverse=True)
+        order = np.argsort(which.reshape(-1), kind="stable")
+        bounds = np.searchsorted(which.reshape(-1)[order], np.arange(len(shards) + 1))
+        for n, (i, j, k) in enumerate(shards.tolist()):
+            rows = order[bounds[n] : bounds[n + 1]]
+            yield f"{TILES_ARRAY}/c/{i}/{j}/{k}", rows, flat_inner[rows]
+
     def chunk_path(self, key: Any) -> Path:
-        """The file that holds tile ``key`` (int (3,)) when it is stored."""
+        """The file that holds tile ``key`` (int (3,)) when it is stored (its shard's file in
+        a sharded array)."""
         keys = self._check_keys(np.asarray(key).reshape(1, 3))
         return self.group_path / next(self._chunk_names(keys))
 
@@ -226,15 +287,19 @@ class ZarrTiles:
     ) -> np.ndarray:
         """Voxel data of ``keys`` (int64 (n, 3)) as int64 (n, T, T, T); missing tiles are 0.
         With ``out`` (a C-contiguous int64 (m, T, T, T)), tile ``n`` goes to ``out[rows[n]]``
-        (``rows`` defaults to ``0..n-1``) and ``out`` is returned.
+        (``rows`` defaults to ``0..n-1``) and ``out`` is returned. A shard file is read once
+        for all its keys.
 
         Raises
         ------
         TileArrayError
-            For a chunk file that does not decode to one tile (naming the key).
+            For a chunk or shard file that does not decode (naming the key).
         """
         keys = self._check_keys(keys)
         out, flat, at = tile_rows(out, rows, len(keys), self.tile_size)
+        if self.shard > 1:
+            self._read_shards(keys, flat, at)
+            return out
         for n, name in enumerate(self._chunk_names(keys)):
             path = self.group_path / name
             try:
@@ -245,6 +310,20 @@ class ZarrTiles:
                 continue
             flat[at[n]] = self.decode(raw, f"tile {keys[n].tolist()}: chunk {path}")
         return out
+
+    def _read_shards(self, keys: np.ndarray, flat: np.ndarray, at: list[int]) -> None:
+        """:meth:`read` of a sharded array: each shard file read once, whole."""
+        for name, picked, inner in self._by_shard(keys):
+            path = str(self.group_path / name)
+            try:
+                found = read_shard(path, self.shard)
+            except ShardError as exc:
+                raise TileArrayError(f"tile {keys[picked[0]].tolist()}: {exc}") from exc
+            chunks = {} if found is None else dict(inner_chunks(*found))
+            for r, n in zip(picked.tolist(), inner.tolist(), strict=True):
+                raw = chunks.get(n)
+                what = f"tile {keys[r].tolist()}: shard {path}"
+                flat[at[r]] = 0 if raw is None else self.decode(raw, what)
 
     def encode(self, tile: np.ndarray) -> bytes:
         """The bytes of one tile's chunk (int64 (T, T, T)), as zarr writes them."""
@@ -271,7 +350,7 @@ class ZarrTiles:
     def write(self, keys: np.ndarray, data: np.ndarray) -> None:
         """Store whole tiles: ``data`` int64 (n, T, T, T) for ``keys`` int64 (n, 3).
 
-        A tile of zeros (all unknown) is not stored: its chunk is deleted. Each chunk is
+        A tile of zeros (all unknown) is not stored: its chunk is deleted. Each file is
         replaced atomically (temporary file and rename) but not fsynced; see :meth:`fsync`.
         """
         keys = self._check_keys(keys)
@@ -286,18 +365,39 @@ class ZarrTiles:
             )
         if len(keys) > 1 and len(unique_keys(keys)) != len(keys):
             raise TileArrayError("keys: the same tile is written twice in one call")
-        for tile, name in zip(data, self._chunk_names(keys), strict=True):
-            if not tile.any():
-                self._store.delete_sync(name)
-                continue
-            self._store.set_sync(name, self._prototype.buffer.from_bytes(self.encode(tile)))
+        self.put(keys, [self.encode(tile) if tile.any() else b"" for tile in data])
+
+    def put(self, keys: np.ndarray, payloads: list[bytes]) -> None:
+        """Store encoded chunks (:meth:`encode`) of distinct ``keys``; an empty payload
+        deletes the tile. Not fsynced; see :meth:`fsync`.
+
+        Raises
+        ------
+        TileArrayError
+            When a shard to rewrite is corrupt (naming it; that shard is left as it was).
+        """
+        keys = self._check_keys(keys)
+        if self.shard > 1:
+            for name, picked, inner in self._by_shard(keys):
+                updates = dict(
+                    zip(inner.tolist(), [payloads[r] for r in picked.tolist()], strict=True)
+                )
+                try:
+                    merge_shard(str(self.group_path / name), updates, self.shard)
+                except ShardError as exc:
+                    raise TileArrayError(f"tile {keys[picked[0]].tolist()}: {exc}") from exc
+            return
+        for payload, name in zip(payloads, self._chunk_names(keys), strict=True):
+            if payload:
+                self._store.set_sync(name, self._prototype.buffer.from_bytes(payload))
+            else:
+                with contextlib.suppress(FileNotFoundError, NotADirectoryError):
+                    os.unlink(self.group_path / name)
 
     def delete(self, keys: np.ndarray) -> None:
         """Remove the chunks of ``keys``; missing ones are ignored (not fsynced)."""
-        keys = self._check_keys(keys)
-        for name in self._chunk_names(keys):
-            with contextlib.suppress(FileNotFoundError, NotADirectoryError):
-                os.unlink(self.group_path / name)
+        keys = unique_keys(self._check_keys(keys))
+        self.put(keys, [b""] * len(keys))
 
     # --- durability and recovery -----------------------------------------------------------
     def fsync(self, keys: np.ndarray) -> None:
@@ -310,7 +410,7 @@ class ZarrTiles:
         the same.
         """
         keys = self._check_keys(keys)
-        fsync_paths(self.group_path, list(self._chunk_names(keys)))
+        fsync_paths(self.group_path, sorted(set(self._chunk_names(keys))))
 
     def remove_partials(self) -> int:
         """Delete the ``<chunk>.<32 hex>.partial`` files that killed writes left behind.
@@ -330,12 +430,35 @@ class ZarrTiles:
         return removed
 
     def stored_keys(self) -> np.ndarray:
-        """Keys of every chunk file present, by walking ``tiles/c`` (not through zarr).
+        """Keys of every tile stored, by walking ``tiles/c`` (not through zarr; in a sharded
+        array, reading each shard's index).
 
         Returns sorted unique int64 (n, 3). Files that are not chunks of a valid key (such as
         ``.partial`` orphans) are skipped.
+
+        Raises
+        ------
+        TileArrayError
+            For a corrupt shard.
         """
-        return stored_chunk_keys(self.path / "c")
+        B = self.shard
+        if B == 1:
+            return stored_chunk_keys(self.path / "c")
+        found = []
+        top = -(-TILES_PER_AXIS // B)
+        for i, j, k in _chunk_files(self.path / "c", 0, top):
+            path = f"{self.path}/c/{i}/{j}/{k}"
+            try:
+                shard = read_shard(path, B)
+            except ShardError as exc:
+                raise TileArrayError(str(exc)) from exc
+            if shard is None:
+                continue
+            for n, _ in inner_chunks(*shard):
+                found.append((i * B + n // (B * B), j * B + n // B % B, k * B + n % B))
+        if not found:
+            return np.zeros((0, 3), np.int64)
+        return unique_keys(np.array(found, np.int64) - KEY_OFFSET)
 
 
 def fsync_paths(root: Path, names: list[str]) -> None:
@@ -371,17 +494,21 @@ def stored_chunk_keys(folder: Path) -> np.ndarray:
     """Keys of the chunk files under ``folder`` (an array's ``c`` folder, named
     ``<i>/<j>/<k>`` by chunk index), by walking it; other files are skipped. Sorted unique
     int64 (n, 3)."""
-    found: list[tuple[int, int, int]] = []
-    for i, dir_i in _int_entries(folder, dirs=True):
-        for j, dir_j in _int_entries(dir_i, dirs=True):
-            for k, _ in _int_entries(dir_j, dirs=False):
-                found.append((i, j, k))
+    found = list(_chunk_files(folder, 1, TILES_PER_AXIS))  # key -2**20 is outside the range
     if not found:
         return np.zeros((0, 3), np.int64)
     return unique_keys(np.array(found, np.int64) - KEY_OFFSET)
 
 
-def _int_entries(folder: str | Path, dirs: bool) -> Iterator[tuple[int, str]]:
+def _chunk_files(folder: str | Path, lo: int, hi: int) -> Iterator[tuple[int, int, int]]:
+    """Chunk indices ``(i, j, k)`` in ``[lo, hi)`` of the files ``folder/<i>/<j>/<k>``."""
+    for i, dir_i in _int_entries(folder, True, lo, hi):
+        for j, dir_j in _int_entries(dir_i, True, lo, hi):
+            for k, _ in _int_entries(dir_j, False, lo, hi):
+                yield i, j, k
+
+
+def _int_entries(folder: str | Path, dirs: bool, lo: int, hi: int) -> Iterator[tuple[int, str]]:
     """``(index, path)`` of the entries of ``folder`` named by a chunk index in range."""
     try:
         entries = list(os.scandir(folder))
@@ -394,7 +521,7 @@ def _int_entries(folder: str | Path, dirs: bool) -> Iterator[tuple[int, str]]:
         index = int(name)
         if str(index) != name:  # zarr writes no leading zeros
             continue
-        if index >= TILES_PER_AXIS or index == 0:  # key -2**20 is outside (-KEY_LIMIT, ...)
+        if not lo <= index < hi:
             continue
         is_dir = entry.is_dir(follow_symlinks=False)
         if is_dir if dirs else entry.is_file(follow_symlinks=False):

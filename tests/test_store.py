@@ -30,7 +30,7 @@ from rangefuse.storage import (
 from rangefuse.storage.archive import ArchiveError
 from rangefuse.storage.catalog import ScanRow
 from rangefuse.storage.staging import Staging
-from rangefuse.storage.store import DEFAULT_SCENE
+from rangefuse.storage.store import DEFAULT_SCENE, STORE_VERSION
 
 H = 0.04
 PARAMS = FusionParams(NoiseModel(eps=2 * H, rho=0.05))
@@ -102,6 +102,8 @@ def test_tile_cache_stages_evicted_tiles_and_reads_them_back(tmp_path):
     assert len(written) == 40
     assert not tiles.read(keys).any()  # nothing written in place
     np.testing.assert_array_equal(staging.read(keys)[:, 1, 2, 3], np.arange(40) + 1)
+    assert len(Staging(tmp_path / "staging", tiles).staged_keys()) == 0  # unfinished: unseen
+    staging.finish()
     assert staging.publish() == 40
     np.testing.assert_array_equal(tiles.read(keys)[:, 1, 2, 3], np.arange(40) + 1)
 
@@ -248,7 +250,7 @@ def test_store_errors(tmp_path, room):
         open_store(tmp_path / "s", grid, other)
     marker = tmp_path / "s" / "rangefuse-store.json"
     marker.write_text(json.dumps({"format": "rangefuse-store", "version": 99}))
-    with pytest.raises(StoreVersionError, match="version 99.*reads versions 1, 2, 3"):
+    with pytest.raises(StoreVersionError, match="version 99.*reads versions 1, 2, 3, 4"):
         open_store(tmp_path / "s")
 
 
@@ -265,6 +267,7 @@ def test_staged_tiles_without_a_checkpoint_are_discarded_at_the_next_open(tmp_pa
     T = grid.tile_size
     dead = Staging(staging_root / "an-attempt-that-died", tiles)
     dead.write(keys, np.full((len(keys), T, T, T), 12345, np.int64))
+    dead.finish()  # a unit that finished, in a group that never reached its checkpoint
     archive.put("ghost", room.scans[5][1])  # archived, never acknowledged
     with open_store(tmp_path / "s") as scene:
         assert scene.recovered["discarded"] == 5 and scene.recovered["published"] == 0
@@ -278,12 +281,12 @@ def test_staged_tiles_without_a_checkpoint_are_discarded_at_the_next_open(tmp_pa
 
 def test_a_publish_cut_short_is_finished_at_the_next_open(tmp_path, room, monkeypatch):
     """A crash after the checkpoint committed, while the staged chunks were being moved."""
-    from rangefuse.storage import staging
+    from rangefuse.storage import shards
 
     grid = _grid()
     moved = []
 
-    class DyingOs:  # the staging module's os: dies after 3 moves into the committed tiles
+    class DyingOs:  # the shards module's os: dies after 3 shards written into the tiles
         def __getattr__(self, name):
             return getattr(os, name)
 
@@ -297,7 +300,7 @@ def test_a_publish_cut_short_is_finished_at_the_next_open(tmp_path, room, monkey
     with open_store(tmp_path / "s", grid, PARAMS) as scene:
         _fill(scene, room.scans[:3])
         scene.store_scan(*room.scans[3])
-        monkeypatch.setattr(staging, "os", DyingOs())
+        monkeypatch.setattr(shards, "os", DyingOs())
         with pytest.raises(KeyboardInterrupt):
             scene.integrate_pending()
         monkeypatch.undo()
@@ -311,7 +314,7 @@ def test_a_publish_cut_short_is_finished_at_the_next_open(tmp_path, room, monkey
 
 def test_a_version_1_store_killed_mid_group_is_upgraded_and_rebuilt(tmp_path, room):
     """Layout 1 wrote tiles in place after journaling them: its journaled tiles are rebuilt
-    from the archive, and the store is version 3 from then on."""
+    from the archive, and the store is the current version from then on."""
     grid = _grid()
     expected = _memory(room.scans[:4], grid).to_dense()
     with open_store(tmp_path / "s", grid, PARAMS) as scene:
@@ -334,7 +337,7 @@ def test_a_version_1_store_killed_mid_group_is_upgraded_and_rebuilt(tmp_path, ro
         assert len(scene.catalog.journal(scene.scene_id)) == 0
         stored = pack_keys(scene.tiles.stored_keys())
         assert np.isin(stored, pack_keys(scene.tile_keys())).all()  # the unowned one is gone
-    assert json.loads(marker.read_text())["version"] == 3
+    assert json.loads(marker.read_text())["version"] == STORE_VERSION
 
 
 #: A version-2 catalog's ``tile_scans`` written back as version 1 held it (ids as text).
@@ -471,7 +474,7 @@ def test_cli_store_commands(tmp_path, capsys):
     assert "0 new scans stored" in capsys.readouterr().out
     assert main(["info", str(store), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["scans"] == 4 and info["version"] == 3
+    assert info["scans"] == 4 and info["version"] == STORE_VERSION
     grid_path = tmp_path / "g.npz"
     assert (
         main(["extract", str(store), "--grid-out", str(grid_path), "-o", str(tmp_path / "m.ply")])

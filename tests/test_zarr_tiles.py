@@ -81,7 +81,7 @@ def test_many_tiles_overwrite_and_delete(tmp_path: Path) -> None:
 
 def test_zero_tiles_are_not_stored(tmp_path: Path) -> None:
     T = 4
-    tiles = ZarrTiles.create(tmp_path / "g", T)
+    tiles = ZarrTiles.create(tmp_path / "g", T, shard=1)
     keys = np.array([[1, 1, 1], [2, 2, 2]], np.int64)
     data = np.zeros((2, T, T, T), np.int64)
     data[1, 3, 2, 1] = 7
@@ -98,7 +98,7 @@ def test_zero_tiles_are_not_stored(tmp_path: Path) -> None:
 def test_zarr_deletes_a_chunk_overwritten_with_zeros(tmp_path: Path) -> None:
     """What zarr itself does with write_empty_chunks=False (the behaviour we mirror)."""
     T = 4
-    tiles = ZarrTiles.create(tmp_path / "g", T)
+    tiles = ZarrTiles.create(tmp_path / "g", T, shard=1)
     key = np.array([3, -2, 1], np.int64)
     tiles.array[_slices(key, T)] = np.ones((T, T, T), np.int64)
     assert tiles.chunk_path(key).is_file()
@@ -110,7 +110,7 @@ def test_chunk_bytes_are_zarrs_own(tmp_path: Path) -> None:
     """A tile written here has the bytes zarr writes for it, in the file zarr names."""
     T = 16
     rng = np.random.default_rng(2)
-    tiles = ZarrTiles.create(tmp_path / "g", T)
+    tiles = ZarrTiles.create(tmp_path / "g", T, shard=1)
     tile = _tiles(rng, 1, T)
     ours, theirs = np.array([[-7, 0, 9]], np.int64), np.array([[-7, 0, 10]], np.int64)
     tiles.write(ours, tile)
@@ -124,7 +124,7 @@ def test_chunk_bytes_are_zarrs_own(tmp_path: Path) -> None:
 
 
 def test_metadata_and_open_errors(tmp_path: Path) -> None:
-    tiles = ZarrTiles.create(tmp_path / "g", 8)
+    tiles = ZarrTiles.create(tmp_path / "g", 8, shard=1)
     meta = tiles.array.metadata.to_dict()
     assert meta["shape"] == (2**21 * 8,) * 3
     assert meta["chunk_grid"]["configuration"]["chunk_shape"] == (8, 8, 8)
@@ -170,7 +170,7 @@ def test_bad_keys_and_data(tmp_path: Path) -> None:
 
 def test_corrupt_chunk_names_the_tile(tmp_path: Path) -> None:
     T = 4
-    tiles = ZarrTiles.create(tmp_path / "g", T)
+    tiles = ZarrTiles.create(tmp_path / "g", T, shard=1)
     key = np.array([[5, -6, 7]], np.int64)
     tiles.write(key, np.ones((1, T, T, T), np.int64))
     tiles.chunk_path(key[0]).write_bytes(b"not zstd")
@@ -241,7 +241,7 @@ _KILLED_WRITER = textwrap.dedent(
 
 def test_remove_partials_after_a_killed_writer(tmp_path: Path) -> None:
     T = 4
-    tiles = ZarrTiles.create(tmp_path / "g", T)
+    tiles = ZarrTiles.create(tmp_path / "g", T, shard=1)
     key = np.array([[1, 2, 3]], np.int64)
     tiles.write(key, np.ones((1, T, T, T), np.int64))
     root = Path(__file__).resolve().parents[1]
