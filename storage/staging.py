@@ -54,7 +54,8 @@ class Staging:
         self.unit = unit
         self._run = uuid.uuid4().hex
         self._packs: list[str] = []  # this run's packs, in order
-        self._where: dict[int, tuple[int, int, int]] = {}  # packed key -> pack, offset, length
+        # per pack: its packed keys (sorted), their offsets and lengths (24 bytes a tile)
+        self._footers: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
 
     # --- one run's packs -----------------------------------------------------------------
     def write(self, keys: np.ndarray, data: Sequence[np.ndarray]) -> None:
@@ -84,11 +85,9 @@ class Staging:
             fh.write(b"".join([*payloads, footer, np.int64(len(keys)).astype("<i8").tobytes()]))
             fh.write(_MAGIC)
         self._packs.append(path)
-        n = len(self._packs) - 1
-        for p, offset, length in zip(
-            pack_keys(keys).tolist(), offsets.tolist(), lengths.tolist(), strict=True
-        ):
-            self._where[p] = (n, offset, length)
+        packed = pack_keys(keys)
+        order = np.argsort(packed, kind="stable")
+        self._footers.append((packed[order], offsets[order], lengths[order]))
 
     def read(
         self, keys: np.ndarray, out: np.ndarray | None = None, rows: np.ndarray | None = None
@@ -97,14 +96,25 @@ class Staging:
         ``out`` and ``rows`` as in :meth:`ZarrTiles.read`."""
         keys = np.asarray(keys, np.int64).reshape(-1, 3)
         out, flat, at = tile_rows(out, rows, len(keys), self.tiles.tile_size)
-        where = []
-        for n, p in enumerate(pack_keys(keys).tolist()):
-            if p not in self._where:
-                raise TileArrayError(f"tile {keys[n].tolist()} was not staged")
-            where.append((*self._where[p], n))
-        for pack, payloads in _payloads(self._packs, sorted(where)):
+        packed = pack_keys(keys)
+        pack = np.full(len(keys), -1, np.int64)
+        offset, length = np.zeros_like(pack), np.zeros_like(pack)
+        for n in range(len(self._packs) - 1, -1, -1):  # the latest pack of each tile
+            todo = np.flatnonzero(pack < 0)
+            if not len(todo):
+                break
+            staged, offsets, lengths = self._footers[n]
+            at_n = np.minimum(np.searchsorted(staged, packed[todo]), len(staged) - 1)
+            hit = staged[at_n] == packed[todo]
+            pack[todo[hit]] = n
+            offset[todo[hit]], length[todo[hit]] = offsets[at_n[hit]], lengths[at_n[hit]]
+        if (pack < 0).any():
+            missing = keys[np.flatnonzero(pack < 0)[0]].tolist()
+            raise TileArrayError(f"tile {missing} was not staged")
+        where = zip(pack.tolist(), offset.tolist(), length.tolist(), range(len(keys)), strict=True)
+        for pack_path, payloads in _payloads(self._packs, sorted(where)):
             for n, raw in payloads:
-                what = f"staged tile {keys[n].tolist()}: {pack}"
+                what = f"staged tile {keys[n].tolist()}: {pack_path}"
                 flat[at[n]] = self.tiles.decode(raw, what) if raw else 0
         return out
 

@@ -169,6 +169,10 @@ def test_only_finished_runs_are_published_and_the_scene_s_deletions_last(tmp_pat
     second = Staging(folder, tiles, "u1")
     second.write(keys[6:], data[6:])
     second.write(keys[6:8], np.zeros((2, T, T, T), np.int64))  # later in the run: unknown
+    assert not second.read(keys[6:8]).any()  # a run reads the latest pack of each tile
+    np.testing.assert_array_equal(second.read(keys[[9, 8]]), data[[9, 8]])
+    with pytest.raises(TileArrayError, match=r"tile \[0, 0, 0\] was not staged"):
+        second.read(keys[[8, 0]])
     second.finish()
     scene = Staging(folder, tiles)
     scene.delete(keys[:1])  # the checkpoint's own deletion of a tile a unit staged
