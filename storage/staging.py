@@ -85,9 +85,10 @@ class Staging:
             fh.write(b"".join([*payloads, footer, np.int64(len(keys)).astype("<i8").tobytes()]))
             fh.write(_MAGIC)
         self._packs.append(path)
-        packed = pack_keys(keys)
-        order = np.argsort(packed, kind="stable")
-        self._footers.append((packed[order], offsets[order], lengths[order]))
+        # sorted, the last of a key given twice
+        packed, last = np.unique(pack_keys(keys)[::-1], return_index=True)
+        last = len(keys) - 1 - last
+        self._footers.append((packed, offsets[last], lengths[last]))
 
     def read(
         self, keys: np.ndarray, out: np.ndarray | None = None, rows: np.ndarray | None = None
@@ -129,10 +130,12 @@ class Staging:
             finally:
                 os.close(fd)
         done = self.folder / f"{self.unit}.{self._run}.done"
-        with open(done, "w") as fh:
+        tmp = done.with_name(done.name + ".partial")  # a run killed here has no done file
+        with open(tmp, "w") as fh:
             fh.write(str(len(self._packs)))
             fh.flush()
             os.fsync(fh.fileno())
+        os.replace(tmp, done)
         fsync_path(self.folder)
 
     # --- the attempt's folder ------------------------------------------------------------

@@ -162,6 +162,7 @@ def test_only_finished_runs_are_published_and_the_scene_s_deletions_last(tmp_pat
     keys = np.array([[k, k % 3, -k] for k in range(12)], np.int64)
     data = _tiles(rng, len(keys), T)
     killed = _run(folder, tiles, "u0", keys[:6], data[:6] + 1, finish=False)  # a killed run
+    (folder / f"u0.{killed._run}.done.partial").write_text("")  # killed writing its done file
     assert len(list(folder.glob("u0.*.pack"))) == 3 and not list(folder.glob("*.done"))
     np.testing.assert_array_equal(killed.read(keys[:6]), data[:6] + 1)  # reads its own packs
     _run(folder, tiles, "u0", keys[:6], data[:6])  # the unit run again
@@ -169,6 +170,7 @@ def test_only_finished_runs_are_published_and_the_scene_s_deletions_last(tmp_pat
     second = Staging(folder, tiles, "u1")
     second.write(keys[6:], data[6:])
     second.write(keys[6:8], np.zeros((2, T, T, T), np.int64))  # later in the run: unknown
+    second.write(keys[[9, 9]], data[[8, 9]])  # a key given twice in one write: the last
     assert not second.read(keys[6:8]).any()  # a run reads the latest pack of each tile
     np.testing.assert_array_equal(second.read(keys[[9, 8]]), data[[9, 8]])
     with pytest.raises(TileArrayError, match=r"tile \[0, 0, 0\] was not staged"):
