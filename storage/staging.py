@@ -82,8 +82,8 @@ class Staging:
         footer = np.column_stack([keys, offsets, lengths]).astype("<i8").tobytes()
         path = f"{self.folder}/{self.unit}.{self._run}.{len(self._packs) + 1}.pack"
         with open(path, "wb") as fh:
-            fh.write(b"".join([*payloads, footer, np.int64(len(keys)).astype("<i8").tobytes()]))
-            fh.write(_MAGIC)
+            fh.writelines(payloads)  # not joined: a pack of 1 cm tiles is tens of MB
+            fh.write(footer + np.int64(len(keys)).astype("<i8").tobytes() + _MAGIC)
         self._packs.append(path)
         # sorted, the last of a key given twice
         packed, last = np.unique(pack_keys(keys)[::-1], return_index=True)
