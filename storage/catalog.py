@@ -9,7 +9,9 @@ through its own connection (``service/accounts.py``, ``service/queue.py``).
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import sqlite3
 import time
 from collections.abc import Iterator, Sequence
@@ -84,6 +86,16 @@ def _packed(tiles: np.ndarray | Sequence[int]) -> list[int]:
     return [int(t) for t in np.asarray(tiles, np.int64).reshape(-1)]
 
 
+def _no_room(path: Path) -> bool:
+    """Whether the disk of ``path`` has less room than SQLite needs to open a database (its
+    shared-memory file, a page or two of its log)."""
+    try:
+        st = os.statvfs(path.parent)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize < 2**20
+
+
 class Catalog:
     """The SQLite catalog of a store. Not shared between threads; one writer process."""
 
@@ -99,6 +111,11 @@ class Catalog:
             add_columns(self._db)
             row = self._db.execute("SELECT value FROM meta WHERE key='version'").fetchone()
         except sqlite3.DatabaseError as exc:
+            if hasattr(self, "_db"):
+                self._db.close()
+            if _no_room(self.path):  # SQLite cannot make its shared-memory file: "I/O error"
+                raise OSError(errno.ENOSPC, f"{self.path}: cannot open the catalog: the disk "
+                              f"is full ({exc})") from None  # fmt: skip
             raise CatalogError(f"{self.path}: not a rangefuse catalog ({exc})") from None
         self._depth = 0
         self._nums: dict[str, int] = {}

@@ -345,14 +345,16 @@ class Scene:
         deleted: np.ndarray | None = None,
         removed: str | None = None,
     ) -> None:
-        """Stage the deletions, commit the catalog in one transaction (the units have staged
-        and fsynced their tiles; ``rows``: per scan, the packed keys of the tiles it informs
-        or owns and whether it owns each), then publish the staged chunks."""
+        """Stage the deletions, hold the room the publish needs (:meth:`Staging.reserve`),
+        commit the catalog in one transaction (the units have staged and fsynced their tiles;
+        ``rows``: per scan, the packed keys of the tiles it informs or owns and whether it
+        owns each), then publish the staged chunks."""
         none = np.zeros(0, np.int64)
         deleted = none if deleted is None else deleted
         if len(deleted):
             staging.delete(unpack_keys(deleted))
             staging.finish()
+        staging.reserve()  # a disk too full to publish fails the group here, not after
         with self.catalog.transaction():
             for scan_id, tiles, owner in rows:
                 self.catalog.add_tile_scans(self.scene_id, scan_id, tiles, owner)

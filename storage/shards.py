@@ -27,6 +27,7 @@ __all__ = [
     "ABSENT",
     "ShardError",
     "build_shard",
+    "index_nbytes",
     "merge_shard",
     "read_shard",
     "shard_index",
@@ -54,7 +55,8 @@ def tiles_per_shard_side(tile_size: int) -> int:
     return max(1, min(MAX_SHARD, SHARD_VOXELS // int(tile_size)))
 
 
-def _index_nbytes(B: int) -> int:
+def index_nbytes(B: int) -> int:
+    """Bytes of a shard's index (16 per inner chunk and the crc32c)."""
     return 16 * B**3 + 4
 
 
@@ -67,7 +69,7 @@ def shard_index(raw: bytes | memoryview, B: int, what: str) -> np.ndarray:
     ShardError
         For a shard too short for its index, a bad checksum, or chunks outside the file.
     """
-    n = _index_nbytes(B)
+    n = index_nbytes(B)
     if len(raw) < n:
         raise ShardError(f"{what} is corrupt ({len(raw)} bytes, shorter than its index)")
     tail = bytes(raw[len(raw) - n :])

@@ -20,6 +20,7 @@ the staged packs are discarded.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import uuid
@@ -40,6 +41,8 @@ _PUBLISH_TILES = 4096
 _PUBLISH_BYTES = 64 * 2**20
 #: The unit name of the scene's own deletions (published after the units').
 SCENE_UNIT = "scene"
+#: The file that holds the room a publish needs (:meth:`Staging.reserve`).
+_ROOM = "room"
 
 
 class Staging:
@@ -181,10 +184,39 @@ class Staging:
         """Keys of every tile the finished runs staged (sorted int64 (n, 3))."""
         return unpack_keys(self._index()[1])
 
+    def reserve(self) -> int:
+        """Hold on disk, in a file of the attempt's folder, the most room that publishing the
+        finished runs takes (:meth:`ZarrTiles.room_to_put`); :meth:`publish` frees it first.
+        Called before the checkpoint commits, so that a disk too full to publish fails the
+        group while what it staged can still be dropped: once committed, the packs must
+        stay until they are published. Returns the bytes held.
+
+        Raises
+        ------
+        OSError
+            ``ENOSPC`` when the disk has not that much room (nothing is held then).
+        """
+        _, packed, where = self._index()
+        need = self.tiles.room_to_put(unpack_keys(packed), int(where[:, 2].sum()))
+        if need:
+            path = self.folder / _ROOM
+            os.makedirs(self.folder, exist_ok=True)
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            try:
+                os.posix_fallocate(fd, 0, need)
+            except BaseException:
+                os.unlink(path)
+                raise
+            finally:
+                os.close(fd)
+        return need
+
     def publish(self) -> int:
         """Write the finished runs' staged chunks into the tile array (a tombstone deletes
         the tile), make that durable, then empty the staging area. Idempotent; returns the
         tiles published."""
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.folder / _ROOM)  # the room it holds is the publish's
         legacy = self._publish_version_3()
         packs, packed, where = self._index()
         keys = unpack_keys(packed)

@@ -48,6 +48,7 @@ from ._heap import libc
 from .shards import (
     MAX_SHARD,
     ShardError,
+    index_nbytes,
     inner_chunks,
     merge_shard,
     read_shard,
@@ -71,6 +72,8 @@ MAX_TILE_SIZE = 256
 _PARTIAL = re.compile(r"\.[0-9a-f]{32}\.partial\Z")
 _BYTES_CODEC = {"name": "bytes", "configuration": {"endian": "little"}}
 _INDEX_CODECS = [_BYTES_CODEC, {"name": "crc32c"}]
+#: A file's size on disk is rounded up to blocks of (at most, on the usual file systems) this.
+_BLOCK = 4096
 
 
 class TileArrayError(ValueError):
@@ -393,6 +396,21 @@ class ZarrTiles:
             else:
                 with contextlib.suppress(FileNotFoundError, NotADirectoryError):
                     os.unlink(self.group_path / name)
+
+    def room_to_put(self, keys: np.ndarray, nbytes: int) -> int:
+        """At most how many bytes of disk a :meth:`put` of ``nbytes`` of chunks to ``keys``
+        takes beyond what the array takes now, at its peak: the chunks, one index and one
+        block of rounding per file, and, as a shard is rewritten through a copy, the
+        largest shard file it rewrites with the chunks added."""
+        keys = self._check_keys(keys)
+        names = sorted(set(self._chunk_names(keys)))
+        largest = 0
+        if self.shard > 1:
+            for name in names:
+                with contextlib.suppress(FileNotFoundError, NotADirectoryError):
+                    largest = max(largest, os.stat(self.group_path / name).st_size)
+        index = 0 if self.shard == 1 else index_nbytes(self.shard)
+        return 2 * int(nbytes) + largest + len(names) * (index + _BLOCK)
 
     def delete(self, keys: np.ndarray) -> None:
         """Remove the chunks of ``keys``; missing ones are ignored (not fsynced)."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import contextlib
+import errno
 import os
 import subprocess
 import time
@@ -20,8 +21,9 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from rangefuse.engine import Volume
+from rangefuse.engine import FusionParams, GridSpec, NoiseModel, Volume
 from rangefuse.engine.synth import make_dataset
+from rangefuse.service._disk import is_disk_full
 from rangefuse.service.accounts import Accounts
 from rangefuse.storage import Store, open_store
 
@@ -226,7 +228,6 @@ def test_an_upload_cancelled_while_staging_leaves_nothing_behind(tmp_path, room)
     import asyncio
     import threading
 
-    from rangefuse.engine import FusionParams, GridSpec, NoiseModel
     from rangefuse.service.api.routes.scans import _staged
     from rangefuse.service.settings import Settings
 
@@ -277,3 +278,89 @@ def test_an_upload_cancelled_while_staging_leaves_nothing_behind(tmp_path, room)
         assert staged and not os.path.exists(staged[0])
         assert not [n for n in os.listdir(staged[0].parent) if n.startswith(".tmp")]
         assert store.catalog.scans("s") == []
+
+
+def test_a_disk_too_full_to_publish_fails_the_group_before_its_checkpoint(tmp_path, room):
+    """Publishing rewrites shards through copies while the staged packs stay: it needs room
+    beyond the packs. A group whose publish may not fit fails before the catalog commits
+    (``Staging.reserve``), so its staging is dropped and the room comes back, whatever the
+    room was. Without it, some rooms failed after the commit: the packs stayed, and the
+    service (its catalog on the same disk) could not even record that the job failed. Tried
+    room after room, a megabyte apart, on the same scene, which no failure changes, until
+    the group fits."""
+    from rangefuse.storage import open_store
+
+    path, params = tmp_path / "disk" / "s", FusionParams(NoiseModel(2 * H, 0.05))
+    with _tmpfs(tmp_path / "disk", 256) as disk:
+        with open_store(path, GridSpec(H, 16), params) as scene:
+            for n, (_, scan) in enumerate(room.scans):
+                scene.store_scan(f"s{n}", scan)
+                if n == 3:
+                    scene.integrate_pending()
+        before, failures = _used(disk), 0
+        for extra in range(0, 64 * 2**20, 2**20):
+            _remount(disk, before + extra)
+            try:
+                with open_store(path) as scene:
+                    scene.integrate_pending()
+                break
+            except Exception as exc:  # ENOSPC, or SQLite's "database or disk is full"
+                assert is_disk_full(exc), exc
+            failures += 1
+            assert not (path / "scenes" / "default" / "staging").exists()
+            # what the failed group staged is gone (SQLite's files may have grown a page)
+            assert _used(disk) - before < 2**16, "the failed group left something behind"
+            _remount(disk, 256 * 2**20)  # room for SQLite to open the catalog
+            with Store.open(path) as store:  # as the failure left it
+                assert store.catalog.publishing("default") is None
+                assert [r.state for r in store.catalog.scans("default")][4:] == ["stored"] * 4
+        assert failures > 4
+        with open_store(path) as scene:
+            got = scene.to_dense()
+            expected = Volume(scene.grid, scene.params)
+    expected.add_many(room.scans)
+    want = expected.to_dense()
+    np.testing.assert_array_equal(got.first_voxel, want.first_voxel)
+    assert np.array_equal(got.logodds, want.logodds, equal_nan=True)
+
+
+def test_the_room_held_for_a_publish_is_enough_to_publish(tmp_path):
+    """``Staging.reserve`` holds what publishing needs: one tile staged into a full shard of
+    incompressible tiles cannot be held on a disk with room for its pack only; once held,
+    the publish succeeds on a disk with no other room."""
+    from rangefuse.storage.staging import Staging
+    from rangefuse.storage.zarr_tiles import ZarrTiles
+
+    rng = np.random.default_rng(1)
+    T = 8
+    with _tmpfs(tmp_path / "disk", 64) as disk:
+        tiles = ZarrTiles.create(disk / "g", T)
+        B = tiles.shard
+        keys = np.stack(np.meshgrid(*[np.arange(B)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        data = rng.integers(1, 2**62, (len(keys), T, T, T))
+        tiles.write(keys, data)
+        shard = tiles.chunk_path(keys[0]).stat().st_size
+        assert shard > B**3 * 8 * T**3  # incompressible: a copy takes as much again
+        new = rng.integers(1, 2**62, (1, T, T, T))
+        # room for the pack only: refused, nothing held
+        staging = Staging(disk / "staging" / "a", tiles, "u0")
+        staging.write(keys[:1], new)
+        staging.finish()
+        _remount(disk, _used(disk) + 64 * 2**10)
+        with pytest.raises(OSError) as refused:
+            staging.reserve()
+        assert refused.value.errno == errno.ENOSPC
+        assert sorted(os.listdir(staging.folder)) == sorted(
+            n for n in os.listdir(staging.folder) if n.endswith((".pack", ".done"))
+        )
+        # room for the reservation, and not a byte more: the publish fits in it
+        _remount(disk, 64 * 2**20)
+        used = _used(disk)
+        held = staging.reserve()
+        assert shard < held < 3 * shard
+        assert _used(disk) - used >= held
+        _remount(disk, _used(disk) + 4096)
+        assert staging.publish() == 1
+        assert not staging.folder.exists()
+        np.testing.assert_array_equal(tiles.read(keys[:1]), new)
+        np.testing.assert_array_equal(tiles.read(keys[1:]), data[1:])
