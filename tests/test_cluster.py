@@ -126,6 +126,22 @@ def test_the_cluster_processes_load_the_engine_before_the_first_unit(cluster):
     assert tunables == {TUNABLES}
 
 
+def test_a_local_cluster_closes_at_once_even_while_its_workers_start():
+    """The workers stop before the scheduler: stopped together, a worker spent its closing
+    retrying the scheduler, 8 s a stop, and a worker still starting outlived a minute (and
+    was killed). A bound on a hang, not a timing: a close takes about a second here."""
+    cluster = Cluster(workers=2)
+    procs = [psutil.Process(p.pid) for p in cluster._local._procs]  # type: ignore[union-attr]
+    time.sleep(0.5)  # the workers are starting
+    t0 = time.perf_counter()
+    cluster.close()
+    took = time.perf_counter() - t0
+    assert took < 15.0, f"closing took {took:.1f} s"
+    assert not [p for p in procs if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
+    codes = [p.returncode for p in cluster._local._procs]  # type: ignore[union-attr]
+    assert -signal.SIGKILL not in codes, codes  # none needed killing
+
+
 def test_in_process_local_and_external_clusters_give_the_same_bits(tmp_path, room, cluster):
     here = _fuse(tmp_path / "here", room.scans)
     _same(_fuse(tmp_path / "local", room.scans, cluster.runner()), here)
