@@ -21,6 +21,7 @@ the staged packs are discarded.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import shutil
 import uuid
@@ -220,11 +221,7 @@ class Staging:
         legacy = self._publish_version_3()
         packs, packed, where = self._index()
         keys = unpack_keys(packed)
-        B = self.tiles.shard
-        shard = np.zeros(len(keys), np.int64)
-        if len(keys):
-            shard = np.unique((keys + KEY_OFFSET) // B, axis=0, return_inverse=True)[1]
-            shard = shard.reshape(-1)
+        shard = self.tiles.shards_of(keys)[1]
         order = np.lexsort((where[:, 1], where[:, 0], shard))  # a shard's tiles together
         for batch in _batches(shard[order], where[order, 2]):
             rows = order[batch]
@@ -291,18 +288,12 @@ def _payloads(
 ) -> Iterator[tuple[str, list[tuple[int, bytes]]]]:
     """For ``spots`` ``(pack, offset, length, n)`` sorted by pack and offset: per pack, its
     path and ``(n, bytes)`` of each spot (each pack opened once)."""
-    start = 0
-    while start < len(spots):
-        pack = spots[start][0]
-        end = start
-        while end < len(spots) and spots[end][0] == pack:
-            end += 1
-        found = []
+    for pack, group in itertools.groupby(spots, key=lambda spot: spot[0]):
         with open(packs[pack], "rb") as fh:
-            for _, offset, length, n in spots[start:end]:
-                found.append((n, os.pread(fh.fileno(), length, offset) if length else b""))
+            fd = fh.fileno()
+            found = [(n, os.pread(fd, length, offset) if length else b"")
+                     for _, offset, length, n in group]  # fmt: skip
         yield packs[pack], found
-        start = end
 
 
 def _batches(shard: np.ndarray, nbytes: np.ndarray) -> Iterator[np.ndarray]:

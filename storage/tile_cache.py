@@ -94,11 +94,10 @@ class TileCache:
         self.written.update(packed.tolist())
         self.writes += len(items)
 
-    def flush(self) -> np.ndarray:
-        """Stage every dirty tile; returns the packed keys of every tile staged."""
+    def flush(self) -> None:
+        """Stage every dirty tile."""
         self._write([(p, self._data[p]) for p in sorted(self._dirty)])
         self._dirty.clear()
-        return np.array(sorted(self.written), np.int64)
 
 
 def cache_tiles(cache_mb: float, tile_size: int) -> int:

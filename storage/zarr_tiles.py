@@ -266,15 +266,22 @@ class ZarrTiles:
         for i, j, k in ((keys + KEY_OFFSET) // B).tolist():
             yield f"{TILES_ARRAY}/c/{i}/{j}/{k}"
 
+    def shards_of(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The shards the keys lie in (int64 (m, 3) shard indices, sorted; a tile is its own
+        shard in an unsharded array) and each key's row among them (int64 (n,))."""
+        if not len(keys):
+            return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+        shards, which = np.unique((keys + KEY_OFFSET) // self.shard, axis=0, return_inverse=True)
+        return shards, which.reshape(-1)
+
     def _by_shard(self, keys: np.ndarray) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
         """``(file, rows, inner index)`` of the keys of each shard the keys touch."""
         B = self.shard
-        index = keys + KEY_OFFSET
-        outer, inner = index // B, index % B
+        inner = (keys + KEY_OFFSET) % B
         flat_inner = (inner[:, 0] * B + inner[:, 1]) * B + inner[:, 2]
-        shards, which = np.unique(outer, axis=0, return_inverse=True)
-        order = np.argsort(which.reshape(-1), kind="stable")
-        bounds = np.searchsorted(which.reshape(-1)[order], np.arange(len(shards) + 1))
+        shards, which = self.shards_of(keys)
+        order = np.argsort(which, kind="stable")
+        bounds = np.searchsorted(which[order], np.arange(len(shards) + 1))
         for n, (i, j, k) in enumerate(shards.tolist()):
             rows = order[bounds[n] : bounds[n + 1]]
             yield f"{TILES_ARRAY}/c/{i}/{j}/{k}", rows, flat_inner[rows]
