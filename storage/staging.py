@@ -67,7 +67,7 @@ class Staging:
         cache's tiles, which need no copy into one array); an all-unknown tile as a
         tombstone. One pack per call."""
         keys = np.asarray(keys, np.int64).reshape(-1, 3)
-        self._pack(keys, [self.tiles.encode(t) if t.any() else b"" for t in data])
+        self._pack(keys, self.tiles.payloads(data))
 
     def delete(self, keys: np.ndarray) -> None:
         """Stage the deletion of tiles (tombstones)."""

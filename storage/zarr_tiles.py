@@ -31,7 +31,7 @@ from __future__ import annotations
 import contextlib
 import os
 import re
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -340,6 +340,13 @@ class ZarrTiles:
         raw = np.ascontiguousarray(tile, "<i8")
         return self._zstd.encode(raw) if self._zstd is not None else raw.tobytes()
 
+    def payloads(self, data: Sequence[np.ndarray] | np.ndarray) -> list[bytes]:
+        """The chunk bytes of tiles, ``b""`` (no chunk) for an all-unknown one: a tile whose
+        bytes are those of the all-zero tile is all zero (the encoding is lossless and
+        deterministic), which costs less than testing every tile's voxels first."""
+        zero = self.encode(np.zeros((self.tile_size,) * 3, np.int64))
+        return [b"" if p == zero else p for p in map(self.encode, data)]
+
     def decode(self, raw: bytes, what: str) -> np.ndarray:
         """One tile (int64 (T**3,)) from its chunk bytes; ``what`` names it in the error.
 
@@ -375,7 +382,7 @@ class ZarrTiles:
             )
         if len(keys) > 1 and len(unique_keys(keys)) != len(keys):
             raise TileArrayError("keys: the same tile is written twice in one call")
-        self.put(keys, [self.encode(tile) if tile.any() else b"" for tile in data])
+        self.put(keys, self.payloads(data))
 
     def put(self, keys: np.ndarray, payloads: list[bytes]) -> None:
         """Store encoded chunks (:meth:`encode`) of distinct ``keys``; an empty payload
@@ -409,15 +416,15 @@ class ZarrTiles:
         takes beyond what the array takes now, at its peak: the chunks, one index and one
         block of rounding per file, and, as a shard is rewritten through a copy, the
         largest shard file it rewrites with the chunks added."""
-        keys = self._check_keys(keys)
-        names = sorted(set(self._chunk_names(keys)))
+        shards = self.shards_of(self._check_keys(keys))[0]
         largest = 0
         if self.shard > 1:
-            for name in names:
+            for i, j, k in shards.tolist():
                 with contextlib.suppress(FileNotFoundError, NotADirectoryError):
-                    largest = max(largest, os.stat(self.group_path / name).st_size)
+                    size = os.stat(f"{self.path}/c/{i}/{j}/{k}").st_size
+                    largest = max(largest, size)
         index = 0 if self.shard == 1 else index_nbytes(self.shard)
-        return 2 * int(nbytes) + largest + len(names) * (index + _BLOCK)
+        return 2 * int(nbytes) + largest + len(shards) * (index + _BLOCK)
 
     def delete(self, keys: np.ndarray) -> None:
         """Remove the chunks of ``keys``; missing ones are ignored (not fsynced)."""
