@@ -27,6 +27,7 @@ from rangefuse.service._disk import is_disk_full
 from rangefuse.service.accounts import Accounts
 from rangefuse.storage import Store, open_store
 
+from tests.test_cli import assert_same_grid
 from tests.test_service import Server, _meta, _npy, _wait, client_of
 
 H = 0.02
@@ -197,13 +198,16 @@ def test_a_full_disk_answers_507_and_the_service_carries_on(tmp_path, room):
             assert done["state"] == "done", done
         finally:
             server.stop()
-        with open_store(disk / "data", scene_id=full) as stored:
-            got = stored.to_dense()
-            expected = Volume(stored.grid, stored.params)
-        expected.add_many(room.scans)
-        want = expected.to_dense()
-        np.testing.assert_array_equal(got.first_voxel, want.first_voxel)
-        assert np.array_equal(got.logodds, want.logodds, equal_nan=True)
+        _assert_as_in_memory(disk / "data", full, room.scans)
+
+
+def _assert_as_in_memory(data_dir: Path, scene_id: str, scans) -> None:
+    """The store's scene equals, bit for bit, its scans fused in memory."""
+    with open_store(data_dir, scene_id=scene_id) as stored:
+        got = stored.to_dense()
+        expected = Volume(stored.grid, stored.params)
+    expected.add_many(scans)
+    assert_same_grid(got, expected.to_dense())
 
 
 def _size(folder: Path) -> int:
@@ -288,8 +292,6 @@ def test_a_disk_too_full_to_publish_fails_the_group_before_its_checkpoint(tmp_pa
     service (its catalog on the same disk) could not even record that the job failed. Tried
     room after room, a megabyte apart, on the same scene, which no failure changes, until
     the group fits."""
-    from rangefuse.storage import open_store
-
     path, params = tmp_path / "disk" / "s", FusionParams(NoiseModel(2 * H, 0.05))
     with _tmpfs(tmp_path / "disk", 256) as disk:
         with open_store(path, GridSpec(H, 16), params) as scene:
@@ -315,13 +317,7 @@ def test_a_disk_too_full_to_publish_fails_the_group_before_its_checkpoint(tmp_pa
                 assert store.catalog.publishing("default") is None
                 assert [r.state for r in store.catalog.scans("default")][4:] == ["stored"] * 4
         assert failures > 4
-        with open_store(path) as scene:
-            got = scene.to_dense()
-            expected = Volume(scene.grid, scene.params)
-    expected.add_many(room.scans)
-    want = expected.to_dense()
-    np.testing.assert_array_equal(got.first_voxel, want.first_voxel)
-    assert np.array_equal(got.logodds, want.logodds, equal_nan=True)
+        _assert_as_in_memory(path, "default", room.scans)
 
 
 def test_the_room_held_for_a_publish_is_enough_to_publish(tmp_path):
