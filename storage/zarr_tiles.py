@@ -260,18 +260,21 @@ class ZarrTiles:
             raise TileArrayError(f"keys: tile keys must lie in (-{KEY_LIMIT}, {KEY_LIMIT})")
         return arr
 
+    def _outer(self, keys: np.ndarray) -> np.ndarray:
+        """The chunk index of each key's file: its shard's (its own in an unsharded array)."""
+        return (keys + KEY_OFFSET) // self.shard
+
     def _chunk_names(self, keys: np.ndarray) -> Iterator[str]:
         """The file of each key: its chunk, or its shard's file in a sharded array."""
-        B = self.shard
-        for i, j, k in ((keys + KEY_OFFSET) // B).tolist():
-            yield f"{TILES_ARRAY}/c/{i}/{j}/{k}"
+        for i, j, k in self._outer(keys).tolist():
+            yield _file_name(i, j, k)
 
     def shards_of(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The shards the keys lie in (int64 (m, 3) shard indices, sorted; a tile is its own
         shard in an unsharded array) and each key's row among them (int64 (n,))."""
         if not len(keys):
             return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
-        shards, which = np.unique((keys + KEY_OFFSET) // self.shard, axis=0, return_inverse=True)
+        shards, which = np.unique(self._outer(keys), axis=0, return_inverse=True)
         return shards, which.reshape(-1)
 
     def _by_shard(self, keys: np.ndarray) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
@@ -284,7 +287,7 @@ class ZarrTiles:
         bounds = np.searchsorted(which[order], np.arange(len(shards) + 1))
         for n, (i, j, k) in enumerate(shards.tolist()):
             rows = order[bounds[n] : bounds[n + 1]]
-            yield f"{TILES_ARRAY}/c/{i}/{j}/{k}", rows, flat_inner[rows]
+            yield _file_name(i, j, k), rows, flat_inner[rows]
 
     def chunk_path(self, key: Any) -> Path:
         """The file that holds tile ``key`` (int (3,)) when it is stored (its shard's file in
@@ -421,7 +424,7 @@ class ZarrTiles:
         if self.shard > 1:
             for i, j, k in shards.tolist():
                 with contextlib.suppress(FileNotFoundError, NotADirectoryError):
-                    size = os.stat(f"{self.path}/c/{i}/{j}/{k}").st_size
+                    size = os.stat(self.group_path / _file_name(i, j, k)).st_size
                     largest = max(largest, size)
         index = 0 if self.shard == 1 else index_nbytes(self.shard)
         return 2 * int(nbytes) + largest + len(shards) * (index + _BLOCK)
@@ -479,7 +482,7 @@ class ZarrTiles:
         found = []
         top = -(-TILES_PER_AXIS // B)
         for i, j, k in _chunk_files(self.path / "c", 0, top):
-            path = f"{self.path}/c/{i}/{j}/{k}"
+            path = f"{self.group_path}/{_file_name(i, j, k)}"
             try:
                 shard = read_shard(path, B)
             except ShardError as exc:
@@ -491,6 +494,11 @@ class ZarrTiles:
         if not found:
             return np.zeros((0, 3), np.int64)
         return unique_keys(np.array(found, np.int64) - KEY_OFFSET)
+
+
+def _file_name(i: int, j: int, k: int) -> str:
+    """A chunk's file in the group (a shard's in a sharded array), from its chunk index."""
+    return f"{TILES_ARRAY}/c/{i}/{j}/{k}"
 
 
 def fsync_paths(root: Path, names: list[str]) -> None:
