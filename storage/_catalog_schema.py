@@ -1,17 +1,27 @@
 """The catalog's tables (docs/storage.md, "Catalog (SQLite)") and the upgrades of a catalog
-written by an older rangefuse: columns added since, and version 1's ``tile_scans``."""
+written by an older rangefuse: columns added since, and the ``tile_scans`` of versions 1
+and 2."""
 
 from __future__ import annotations
 
 import sqlite3
 
-__all__ = ["SCHEMA", "add_columns", "upgrade_from_1"]
+import numpy as np
+
+from ._tile_rows import rows_of_runs
+
+__all__ = ["SCHEMA", "add_columns", "upgrade"]
 
 _TILE_SCANS = """
 CREATE TABLE IF NOT EXISTS tile_scans(
+    scene INTEGER NOT NULL, tile INTEGER NOT NULL, owners INTEGER NOT NULL,
+    scans BLOB NOT NULL, PRIMARY KEY(scene, tile)) WITHOUT ROWID
+"""
+#: Version 2's table, under the name an upgrade reads it by.
+_TILE_SCANS_2 = """
+CREATE TABLE tile_scans_v2(
     scene INTEGER NOT NULL, tile INTEGER NOT NULL, scan INTEGER NOT NULL,
-    owner INTEGER NOT NULL, PRIMARY KEY(scene, tile, scan)) WITHOUT ROWID;
-CREATE INDEX IF NOT EXISTS tile_scans_scan ON tile_scans(scene, scan);
+    owner INTEGER NOT NULL, PRIMARY KEY(scene, tile, scan)) WITHOUT ROWID
 """
 SCHEMA = f"""
 CREATE TABLE IF NOT EXISTS meta(key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -29,7 +39,7 @@ CREATE INDEX IF NOT EXISTS scans_reach ON scans(scene_id, reach_m);
 CREATE TABLE IF NOT EXISTS scene_nums(num INTEGER PRIMARY KEY, id TEXT NOT NULL UNIQUE);
 CREATE TABLE IF NOT EXISTS scan_nums(
     num INTEGER PRIMARY KEY, scene INTEGER NOT NULL, id TEXT NOT NULL, UNIQUE(scene, id));
-{_TILE_SCANS.strip()}
+{_TILE_SCANS.strip()};
 CREATE TABLE IF NOT EXISTS journal(
     scene_id TEXT NOT NULL, tile INTEGER NOT NULL, PRIMARY KEY(scene_id, tile)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS publishing(scene_id TEXT PRIMARY KEY, attempt TEXT NOT NULL);
@@ -62,37 +72,67 @@ def add_columns(db: sqlite3.Connection) -> None:
                     raise
 
 
-#: Version 1's rows rewritten with numbers (run after the version-2 table is made).
+#: Version 1's rows rewritten with numbers into version 2's table (``tile_scans_v2``).
 _FROM_1 = (
     "INSERT OR IGNORE INTO scene_nums(id) SELECT DISTINCT scene_id FROM tile_scans_v1",
     "INSERT INTO scan_nums(scene, id) SELECT DISTINCT n.num, v.scan_id "
     "FROM tile_scans_v1 v JOIN scene_nums n ON n.id = v.scene_id",
-    "INSERT INTO tile_scans(scene, tile, scan, owner) "
+    "INSERT INTO tile_scans_v2(scene, tile, scan, owner) "
     "SELECT n.num, v.tile, m.num, v.owner FROM tile_scans_v1 v "
     "JOIN scene_nums n ON n.id = v.scene_id "
     "JOIN scan_nums m ON m.scene = n.num AND m.id = v.scan_id",
     "DROP TABLE tile_scans_v1",
 )
+#: Version 2's rows read at once while they are rewritten as version 3's.
+_RUN = 2**20
 
 
-def upgrade_from_1(db: sqlite3.Connection, version: int) -> None:
-    """Rewrite a version-1 ``tile_scans`` (the scene's and the scan's ids as text in every
-    row) with numbers and make the catalog ``version``, in one transaction (a crash
-    leaves version 1). ``db`` is in autocommit mode, outside a transaction."""
+def upgrade(db: sqlite3.Connection, version: int) -> None:
+    """Rewrite the ``tile_scans`` of a version-1 catalog (the scene's and the scan's ids as
+    text in a row per pair) or a version-2 one (numbers, a row per pair) as a row per tile
+    and make the catalog ``version``, in one transaction (a crash leaves the old version).
+    ``db`` is in autocommit mode, outside a transaction."""
     db.execute("BEGIN IMMEDIATE")
     try:
-        row = db.execute("SELECT value FROM meta WHERE key='version'").fetchone()
-        if row[0] == "1":  # not upgraded by another process meanwhile
-            db.execute("INSERT OR IGNORE INTO scene_nums(id) SELECT id FROM scenes")
-            columns = {r[1] for r in db.execute("PRAGMA table_info(tile_scans)")}
-            if "scene_id" in columns:  # version 1's table (not one this open just made)
-                db.execute("DROP INDEX IF EXISTS tile_scans_scan")
+        (found,) = db.execute("SELECT value FROM meta WHERE key='version'").fetchone()
+        columns = {r[1] for r in db.execute("PRAGMA table_info(tile_scans)")}
+        if found in ("1", "2") and "owners" not in columns:  # not upgraded meanwhile
+            db.execute("DROP INDEX IF EXISTS tile_scans_scan")
+            if found == "1":
+                db.execute("INSERT OR IGNORE INTO scene_nums(id) SELECT id FROM scenes")
                 db.execute("ALTER TABLE tile_scans RENAME TO tile_scans_v1")
-                for statement in [*_TILE_SCANS.split(";"), *_FROM_1]:
-                    if statement.strip():
-                        db.execute(statement)
-            db.execute("UPDATE meta SET value=? WHERE key='version'", (str(version),))
+                db.execute(_TILE_SCANS_2)
+                for statement in _FROM_1:
+                    db.execute(statement)
+            else:
+                db.execute("ALTER TABLE tile_scans RENAME TO tile_scans_v2")
+            db.execute(_TILE_SCANS)
+            _from_2(db)
+            db.execute("DROP TABLE tile_scans_v2")
+        db.execute("UPDATE meta SET value=? WHERE key='version'", (str(version),))
     except BaseException:
         db.execute("ROLLBACK")
         raise
     db.execute("COMMIT")
+
+
+def _from_2(db: sqlite3.Connection) -> None:
+    """Version 2's rows (``tile_scans_v2``) written as version 3's, read in key order in
+    runs of :data:`_RUN` (a tile's last rows wait for the next run)."""
+    cursor = db.execute(
+        "SELECT scene, tile, 2 * scan + owner FROM tile_scans_v2 ORDER BY scene, tile, scan"
+    )
+    held = np.zeros((0, 3), np.int64)
+    while True:
+        fetched = cursor.fetchmany(_RUN)
+        run = np.concatenate([held, np.array(fetched, np.int64).reshape(-1, 3)])
+        if fetched and len(run):  # the last (scene, tile) may go on in the next run
+            same = (run[:, 0] == run[-1, 0]) & (run[:, 1] == run[-1, 1])
+            run, held = run[~same], run[same]
+        rows: list[tuple[int, int, int, bytes]] = []
+        for scene in np.unique(run[:, 0]).tolist():
+            mine = run[run[:, 0] == scene]
+            rows.extend((scene, *row) for row in rows_of_runs(mine[:, 1], mine[:, 2]))
+        db.executemany("INSERT INTO tile_scans(scene, tile, owners, scans) VALUES(?,?,?,?)", rows)
+        if not fetched:
+            return

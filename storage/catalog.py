@@ -14,7 +14,7 @@ import json
 import os
 import sqlite3
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +22,16 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from ._catalog_schema import SCHEMA, add_columns, upgrade_from_1
+from ._catalog_schema import SCHEMA, add_columns, upgrade
+from ._tile_rows import (
+    MERGE_PAIRS,
+    MERGE_TILES,
+    entries,
+    merged,
+    read_rows,
+    remove_scan,
+    write_rows,
+)
 
 __all__ = [
     "CATALOG_VERSION",
@@ -32,15 +41,15 @@ __all__ = [
     "SceneRow",
 ]
 
-#: Version 2 (docs/storage.md, "Catalog version 2"): ``tile_scans`` rows hold integers (the
-#: scene's number in ``scene_nums``, the scan's in ``scan_nums``) instead of the ids' text;
-#: a version-1 catalog is upgraded when it is opened.
-CATALOG_VERSION = 2
-#: SQLite's page cache per connection (KiB): the checkpoint inserts a row per (scan, tile).
+#: Version 3 (docs/storage.md, "Catalog version 3"): ``tile_scans`` holds a row per tile,
+#: its scans' numbers (``scan_nums``) and owner flags in one blob; version 2 held a row per
+#: (scan, tile) pair, version 1 the same with the ids' text. Both are upgraded when opened.
+CATALOG_VERSION = 3
+#: SQLite's page cache per connection (KiB).
 _CACHE_KIB = 16384
 #: Bytes of write-ahead log SQLite leaves on disk once it is checkpointed: a group's
-#: transaction (a row per scan and tile: 40 MB of log for the 640 m street at 10 cm in one
-#: group) would otherwise keep its log's size beside the catalog for good.
+#: transaction (a row per tile it touches) would otherwise keep its log's size beside the
+#: catalog for good.
 WAL_LIMIT = 8 * 2**20
 
 #: States of a scan: archived and acknowledged; fused into the tiles; being removed.
@@ -123,20 +132,20 @@ class Catalog:
             self._db.execute(
                 "INSERT INTO meta(key, value) VALUES('version', ?)", (str(CATALOG_VERSION),)
             )
-        elif row[0] == "1":
+        elif row[0] in ("1", "2"):
             try:
-                upgrade_from_1(self._db, CATALOG_VERSION)
+                upgrade(self._db, CATALOG_VERSION)
             except sqlite3.DatabaseError as exc:
                 self._db.close()
                 raise CatalogError(
-                    f"{self.path}: upgrading the catalog from version 1 to {CATALOG_VERSION} "
-                    f"failed ({exc}); it is left at version 1"
+                    f"{self.path}: upgrading the catalog from version {row[0]} to "
+                    f"{CATALOG_VERSION} failed ({exc}); it is left at version {row[0]}"
                 ) from None
         elif row[0] != str(CATALOG_VERSION):
             self._db.close()
             raise CatalogError(
                 f"{self.path}: catalog version {row[0]}, this rangefuse reads versions 1 "
-                f"(upgraded when opened) and {CATALOG_VERSION}"
+                f"and 2 (upgraded when opened) and {CATALOG_VERSION}"
             )
 
     def _num(self, scene_id: str, create: bool = False) -> int:
@@ -376,12 +385,13 @@ class Catalog:
         self._db.execute("DELETE FROM scans WHERE scene_id=? AND id=?", (scene_id, scan_id))
 
     # --- tiles --------------------------------------------------------------------------------
-    # ``tile_scans`` rows are (scene number, packed tile key, scan number, owner): a row per scan
-    # that informs or owns the tile; a tile exists iff it has an owner row.
+    # ``tile_scans`` rows are (scene number, packed tile key, owners, scans): a row per tile,
+    # ``scans`` the entries ``2 * scan number + owner`` of the scans that inform or own it
+    # (``storage._tile_rows``); a tile exists iff it has an owner.
     def tile_keys(self, scene_id: str) -> np.ndarray:
         """Packed keys of the tiles that exist (have an owner), sorted."""
         rows = self._db.execute(
-            "SELECT DISTINCT tile FROM tile_scans WHERE scene=? AND owner=1 ORDER BY tile",
+            "SELECT tile FROM tile_scans WHERE scene=? AND owners>0 ORDER BY tile",
             (self._num(scene_id),),
         ).fetchall()
         return np.array([r[0] for r in rows], np.int64)
@@ -393,8 +403,8 @@ class Catalog:
         out: list[int] = []
         for lo, hi in ranges:
             rows = self._db.execute(
-                "SELECT DISTINCT tile FROM tile_scans WHERE scene=? AND tile BETWEEN ? AND ? "
-                "AND owner=1 ORDER BY tile",
+                "SELECT tile FROM tile_scans WHERE scene=? AND tile BETWEEN ? AND ? "
+                "AND owners>0 ORDER BY tile",
                 (num, int(lo), int(hi)),
             ).fetchall()
             out.extend(r[0] for r in rows)
@@ -402,8 +412,7 @@ class Catalog:
 
     def n_tiles(self, scene_id: str) -> int:
         row = self._db.execute(
-            "SELECT COUNT(DISTINCT tile) FROM tile_scans WHERE scene=? AND owner=1",
-            (self._num(scene_id),),
+            "SELECT COUNT(*) FROM tile_scans WHERE scene=? AND owners>0", (self._num(scene_id),)
         ).fetchone()
         return int(row[0])
 
@@ -411,55 +420,86 @@ class Catalog:
         """``{tile: [(scan_id, is_owner), ...]}`` for the given packed keys."""
         num = self._num(scene_id)
         out: dict[int, list[tuple[str, bool]]] = {t: [] for t in _packed(tiles)}
-        for chunk in _chunks(list(out), 500):
+        rows = {t: entries(b) for t, b in read_rows(self._db, num, list(out)).items()}
+        nums = sorted({n for e in rows.values() for n in (e >> 1).tolist()})
+        ids: dict[int, str] = {}
+        for chunk in _chunks(nums, 500):
             marks = ",".join("?" * len(chunk))
-            rows = self._db.execute(
-                f"SELECT t.tile, m.id, t.owner FROM tile_scans t JOIN scan_nums m "
-                f"ON m.num=t.scan WHERE t.scene=? AND t.tile IN ({marks})",
-                (num, *chunk),
+            ids.update(
+                self._db.execute(f"SELECT num, id FROM scan_nums WHERE num IN ({marks})", chunk)
             )
-            for tile, scan_id, owner in rows:
-                out[tile].append((scan_id, bool(owner)))
+        for tile, e in rows.items():
+            out[tile] = [
+                (ids[n], bool(o)) for n, o in zip((e >> 1).tolist(), (e & 1).tolist(), strict=True)
+            ]
         return out
 
     def add_tile_scans(
-        self, scene_id: str, scan_id: str, tiles: np.ndarray, owner: np.ndarray
+        self, scene_id: str, rows: Iterable[tuple[str, np.ndarray, np.ndarray]]
     ) -> None:
-        """Rows for the tiles (packed keys) the scan informs, and whether it owns each."""
+        """Record, per scan ``(scan_id, tiles, owner)``, the tiles (packed keys) it informs
+        and whether it owns each (a scan's entry in a tile replaces the one it had): merged
+        into the tiles' rows :data:`~storage._tile_rows.MERGE_PAIRS` pairs at a time."""
         num = self._num(scene_id, create=True)
-        scan = self._scan_nums(num, [scan_id])[scan_id]
-        self._db.executemany(
-            "INSERT OR REPLACE INTO tile_scans(scene, tile, scan, owner) VALUES(?,?,?,?)",
-            (  # one row at a time: a 1 cm scan has about a million
-                (num, t, scan, o)
-                for t, o in zip(_packed(tiles), np.asarray(owner, np.int64).tolist(), strict=True)
-            ),
-        )
+        tiles: list[np.ndarray] = []
+        values: list[np.ndarray] = []
+        pending = 0
+        for scan_id, scan_tiles, owner in rows:
+            scan = self._scan_nums(num, [scan_id])[scan_id]
+            scan_tiles = np.asarray(scan_tiles, np.int64).reshape(-1)
+            owner = np.asarray(owner, np.bool_).reshape(-1)
+            if len(owner) != len(scan_tiles):
+                raise ValueError(f"{len(owner)} owner flags for {len(scan_tiles)} tiles")
+            tiles.append(scan_tiles)
+            values.append(2 * scan + owner.astype(np.int64))
+            pending += len(scan_tiles)
+            if pending >= MERGE_PAIRS:
+                self._merge(num, tiles, values)
+                tiles, values, pending = [], [], 0
+        if pending:
+            self._merge(num, tiles, values)
 
-    def remove_tile_scans(self, scene_id: str, scan_id: str) -> None:
-        """Forget the scan's rows (and its number)."""
+    def _merge(self, num: int, tiles: list[np.ndarray], values: list[np.ndarray]) -> None:
+        """Merge pairs into their tiles' rows, :data:`MERGE_TILES` tiles at a time (their
+        rows' entries, read and rewritten, are what a merge holds besides the pairs)."""
+        t, v = np.concatenate(tiles), np.concatenate(values)
+        order = np.argsort(t, kind="stable")  # a scan's later pair stays after its earlier
+        t, v = t[order], v[order]
+        del order
+        starts = np.flatnonzero(np.r_[True, t[1:] != t[:-1]])
+        for first in range(0, len(starts), MERGE_TILES):
+            a = starts[first]
+            b = starts[first + MERGE_TILES] if first + MERGE_TILES < len(starts) else len(t)
+            old = read_rows(self._db, num, t[starts[first : first + MERGE_TILES]].tolist())
+            write_rows(self._db, num, merged(t[a:b], v[a:b], old))
+
+    def remove_tile_scans(
+        self, scene_id: str, scan_id: str, ranges: Sequence[tuple[int, int]] | None = None
+    ) -> None:
+        """Forget the scan's entries (and its number): in the rows of the packed-key ranges
+        ``[lo, hi]`` (every tile the scan informs or owns lies in them), or of every tile."""
         num = self._num(scene_id)
         row = self._db.execute(
             "SELECT num FROM scan_nums WHERE scene=? AND id=?", (num, scan_id)
         ).fetchone()
-        if row is not None:
-            self._db.execute("DELETE FROM tile_scans WHERE scene=? AND scan=?", (num, row[0]))
-            self._db.execute("DELETE FROM scan_nums WHERE num=?", (row[0],))
+        if row is None:
+            return
+        remove_scan(self._db, num, row[0], ranges)
+        self._db.execute("DELETE FROM scan_nums WHERE num=?", (row[0],))
 
     def set_tile_owners(
         self, scene_id: str, tiles: np.ndarray, owners: Sequence[frozenset[str]]
     ) -> None:
         """Make ``owners[n]`` the owners of tile ``tiles[n]`` (packed keys); other scans that
-        owned it keep a row as informing scans."""
+        owned it keep an entry as informing scans."""
         num = self._num(scene_id, create=True)
         scans = self._scan_nums(num, [s for own in owners for s in own])
-        for tile, own in zip(_packed(tiles), owners, strict=True):
-            self._db.execute("UPDATE tile_scans SET owner=0 WHERE scene=? AND tile=?", (num, tile))
-            self._db.executemany(
-                "INSERT INTO tile_scans(scene, tile, scan, owner) VALUES(?,?,?,1) "
-                "ON CONFLICT(scene, tile, scan) DO UPDATE SET owner=1",
-                [(num, tile, scans[scan_id]) for scan_id in sorted(own)],
-            )
+        packed = _packed(tiles)
+        old = {t: (entries(b) & ~1).tobytes() for t, b in read_rows(self._db, num, packed).items()}
+        pairs = [(t, 2 * scans[s] + 1) for t, own in zip(packed, owners, strict=True) for s in own]
+        t = np.array([p[0] for p in pairs], np.int64)
+        v = np.array([p[1] for p in pairs], np.int64)
+        write_rows(self._db, num, merged(t, v, old))
 
     def delete_tiles(self, scene_id: str, tiles: np.ndarray) -> None:
         """Forget tiles (packed keys): every row of their owners and informing scans."""
@@ -548,9 +588,7 @@ class Catalog:
         scans = dict(
             self._db.execute("SELECT state, COUNT(*) FROM scans GROUP BY state").fetchall()
         )
-        tiles = self._db.execute(
-            "SELECT COUNT(*) FROM (SELECT DISTINCT scene, tile FROM tile_scans WHERE owner=1)"
-        ).fetchone()[0]
+        tiles = self._db.execute("SELECT COUNT(*) FROM tile_scans WHERE owners>0").fetchone()[0]
         return {"scans": scans, "tiles": int(tiles)}
 
     def count(self, table: str, scene_id: str) -> int:

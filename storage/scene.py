@@ -120,6 +120,16 @@ def _reach_box(spheres: Sequence[Sphere], grid: GridSpec) -> tuple[np.ndarray, n
     return np.clip(lo, -limit, limit), np.clip(hi, -limit, limit)
 
 
+def _box_ranges(lo: np.ndarray, hi: np.ndarray) -> list[tuple[int, int]]:
+    """Ranges of packed keys ``[lo, hi]`` that hold the box of tile keys ``[lo, hi]``: one
+    per x (keys pack x, then y, then z)."""
+    return [
+        (int(pack_keys(np.array([[x, lo[1], lo[2]]]))[0]),
+         int(pack_keys(np.array([[x, hi[1], hi[2]]]))[0]))
+        for x in range(int(lo[0]), int(hi[0]) + 1)
+    ]  # fmt: skip
+
+
 @dataclass(frozen=True)
 class _Work:
     """A plan, the rows of its tiles that units stage, and the units."""
@@ -278,14 +288,8 @@ class Scene:
                                      spheres=spheres, max_pairs=max_pairs))  # fmt: skip
 
     def _tile_keys_in(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-        """Packed keys of the existing tiles in the box of tile keys ``[lo, hi]``, sorted:
-        one range of packed keys per x (keys pack x, then y, then z)."""
-        ranges = [
-            (int(pack_keys(np.array([[x, lo[1], lo[2]]]))[0]),
-             int(pack_keys(np.array([[x, hi[1], hi[2]]]))[0]))
-            for x in range(int(lo[0]), int(hi[0]) + 1)
-        ]  # fmt: skip
-        packed = self.catalog.tile_keys_in_ranges(self.scene_id, ranges)
+        """Packed keys of the existing tiles in the box of tile keys ``[lo, hi]``, sorted."""
+        packed = self.catalog.tile_keys_in_ranges(self.scene_id, _box_ranges(lo, hi))
         keys = unpack_keys(packed)
         inside = np.all((keys >= lo) & (keys <= hi), axis=1)
         return packed[inside]
@@ -343,12 +347,13 @@ class Scene:
         fused: Sequence[str] = (),
         changed: np.ndarray | None = None,
         deleted: np.ndarray | None = None,
-        removed: str | None = None,
+        removed: tuple[str, list[tuple[int, int]] | None] | None = None,
     ) -> None:
         """Stage the deletions, hold the room the publish needs (:meth:`Staging.reserve`),
         commit the catalog in one transaction (the units have staged and fsynced their tiles;
         ``rows``: per scan, the packed keys of the tiles it informs or owns and whether it
-        owns each), then publish the staged chunks."""
+        owns each; ``removed``: a scan to forget and the packed-key ranges its tiles lie in,
+        None for all), then publish the staged chunks."""
         none = np.zeros(0, np.int64)
         deleted = none if deleted is None else deleted
         if len(deleted):
@@ -356,11 +361,11 @@ class Scene:
             staging.finish()
         staging.reserve()  # a disk too full to publish fails the group here, not after
         with self.catalog.transaction():
-            for scan_id, tiles, owner in rows:
-                self.catalog.add_tile_scans(self.scene_id, scan_id, tiles, owner)
+            self.catalog.add_tile_scans(self.scene_id, rows)
             if removed is not None:
-                self.catalog.remove_tile_scans(self.scene_id, removed)
-                self.catalog.delete_scan(self.scene_id, removed)
+                scan_id, ranges = removed
+                self.catalog.remove_tile_scans(self.scene_id, scan_id, ranges)
+                self.catalog.delete_scan(self.scene_id, scan_id)
             self.catalog.set_scan_state(self.scene_id, list(fused), "fused")
             self.meshes.bump(np.union1d(none if changed is None else changed, deleted))
             self.catalog.journal_clear(self.scene_id)  # a version-1 journal, now rebuilt
@@ -407,7 +412,8 @@ class Scene:
         written = work.written
         self._checkpoint(
             work.staging, changed=pack_keys(plan.keys[written]),
-            deleted=pack_keys(plan.deleted), removed=scan_id,
+            deleted=pack_keys(plan.deleted),
+            removed=(scan_id, None if box is None else _box_ranges(*box)),
         )  # fmt: skip
         self.archive.delete(scan_id)
         return SceneReport(

@@ -2,7 +2,7 @@
 
 :class:`ZarrTileStore` keeps voxel data in the scene's Zarr tile array
 (:class:`~storage.zarr_tiles.ZarrTiles`, one chunk per tile) and owners in the catalog
-(``tile_scans`` rows with ``owner = 1``): the same protocol as the in-memory
+(the entries of ``tile_scans`` rows with the owner flag): the same protocol as the in-memory
 :class:`~engine.volume.MemoryTileStore`, writes included, and the same contract tests
 (``tests/test_tile_store_contract.py``). An engine :class:`~engine.fusion.Volume` can fuse
 into it directly; a persistent :class:`~storage.scene.Scene` reads its tiles through it and

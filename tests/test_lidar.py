@@ -439,8 +439,8 @@ def test_the_catalog_lists_the_tiles_in_key_ranges(tmp_path) -> None:
     packed = pack_keys(keys)
     owner = rng.random(len(keys)) < 0.8
     with catalog.transaction():
-        catalog.add_tile_scans("s", "a", packed, owner)
-        catalog.add_tile_scans("s", "b", packed[::3], np.zeros(len(packed[::3]), np.bool_))
+        catalog.add_tile_scans("s", [("a", packed, owner)])
+        catalog.add_tile_scans("s", [("b", packed[::3], np.zeros(len(packed[::3]), np.bool_))])
     owned = packed[owner]
     ranges = [(int(a), int(b)) for a, b in sorted(rng.choice(owned, (6, 2)).tolist())]
     ranges = [(a, b) for (a, b), nxt in zip(ranges, [*ranges[1:], (None, None)], strict=True)
@@ -450,19 +450,90 @@ def test_the_catalog_lists_the_tiles_in_key_ranges(tmp_path) -> None:
 
 
 def test_the_catalogs_log_shrinks_back_after_a_large_group(tmp_path, monkeypatch) -> None:
-    """A group's checkpoint is one transaction of a row per (scan, tile); once SQLite has
+    """A group's checkpoint is one transaction that writes a row per tile; once SQLite has
     checkpointed its log, the next transaction cuts the log back to WAL_LIMIT."""
     from rangefuse.storage import catalog as catalog_module
 
     monkeypatch.setattr(catalog_module, "WAL_LIMIT", 64 * 1024)
     catalog = _catalog(tmp_path)
     wal = tmp_path / "catalog.sqlite-wal"
-    keys = np.arange(50_000, dtype=np.int64)
+    keys = np.arange(100_000, dtype=np.int64)
     with catalog.transaction():
-        for scan in "abcdefg":
-            catalog.add_tile_scans("s", scan, keys, np.zeros(len(keys), np.bool_))
+        catalog.add_tile_scans(
+            "s", [(scan, keys, np.zeros(len(keys), np.bool_)) for scan in "abcdefg"]
+        )
     # the group's log, past SQLite's automatic checkpoint (1,000 pages)
     assert wal.stat().st_size > 4096 * 1000
     with catalog.transaction():
-        catalog.add_tile_scans("s", "d", keys[:1], np.ones(1, np.bool_))
+        catalog.add_tile_scans("s", [("d", keys[:1], np.ones(1, np.bool_))])
     assert wal.stat().st_size <= 64 * 1024
+
+
+def _pairs(catalog, scene_id: str) -> set[tuple[int, str, bool]]:
+    """Every (tile, scan, owner) entry of the scene's rows, whether or not the tile exists."""
+    from rangefuse.storage._tile_rows import entries
+
+    num = catalog._num(scene_id)
+    ids = dict(catalog._db.execute("SELECT num, id FROM scan_nums WHERE scene=?", (num,)))
+    rows = catalog._db.execute("SELECT tile, owners, scans FROM tile_scans WHERE scene=?", (num,))
+    out = set()
+    for tile, owners, blob in rows:
+        e = entries(blob)
+        assert np.all(np.diff(e >> 1) > 0) and owners == int((e & 1).sum())
+        out |= {
+            (tile, ids[n], bool(o))
+            for n, o in zip((e >> 1).tolist(), (e & 1).tolist(), strict=True)
+        }
+    return out
+
+
+def test_the_catalogs_rows_per_tile_merge_as_rows_per_pair_did(tmp_path, monkeypatch) -> None:
+    """A checkpoint's pairs merge into a row per tile (catalog version 3) as a row per pair
+    did: a scan's later entry in a tile replaces its earlier one, whatever the batches
+    (``MERGE_PAIRS``, ``MERGE_TILES``); owners set by a TileStore keep the other scans as
+    informing ones; a removal in the ranges that hold its tiles takes every entry of its
+    scan."""
+    rng = np.random.default_rng(3)
+    model: dict[tuple[int, str], bool] = {}
+    scans = []
+    for n in range(12):
+        tiles = np.unique(rng.integers(0, 400, rng.integers(1, 150)))
+        owner = rng.random(len(tiles)) < 0.6
+        scans.append((f"s{n % 9}", tiles, owner))  # three scans come twice
+        model.update(
+            {(t, f"s{n % 9}"): bool(o) for t, o in zip(tiles.tolist(), owner.tolist(), strict=True)}
+        )
+    found = []
+    for batch, tiles_at_once in ((2**21, 2**16), (100, 7)):
+        monkeypatch.setattr("rangefuse.storage.catalog.MERGE_PAIRS", batch)
+        monkeypatch.setattr("rangefuse.storage.catalog.MERGE_TILES", tiles_at_once)
+        (tmp_path / str(batch)).mkdir()
+        catalog = _catalog(tmp_path / str(batch))
+        with catalog.transaction():
+            catalog.add_tile_scans("s", scans[:5])
+            catalog.add_tile_scans("s", scans[5:])
+        found.append(_pairs(catalog, "s"))
+        owned = sorted({t for (t, _), o in model.items() if o})
+        assert np.array_equal(catalog.tile_keys("s"), owned)
+        assert catalog.n_tiles("s") == len(owned)
+    assert found[0] == found[1] == {(t, s, o) for (t, s), o in model.items()}
+
+    tiles = np.array(sorted({t for t, _ in model})[:20], np.int64)
+    with catalog.transaction():
+        catalog.set_tile_owners("s", tiles, [frozenset({"s1", "x"})] * len(tiles))
+    for t in tiles.tolist():
+        for s in [s for (tt, s) in model if tt == t]:
+            model[(t, s)] = False
+        model[(t, "s1")] = model[(t, "x")] = True
+    assert _pairs(catalog, "s") == {(t, s, o) for (t, s), o in model.items()}
+    info = catalog.tile_scans("s", tiles)
+    assert {(t, s, o) for t, v in info.items() for s, o in v} == {
+        (t, s, o) for (t, s), o in model.items() if t in set(tiles.tolist())
+    }
+
+    with catalog.transaction():
+        catalog.remove_tile_scans("s", "s2", [(0, 99), (100, 500)])
+        catalog.remove_tile_scans("s", "x")
+    model = {(t, s): o for (t, s), o in model.items() if s not in ("s2", "x")}
+    assert _pairs(catalog, "s") == {(t, s, o) for (t, s), o in model.items()}
+    assert "s2" not in {r[0] for r in catalog._db.execute("SELECT id FROM scan_nums")}
