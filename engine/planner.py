@@ -42,7 +42,7 @@ import numpy as np
 from ._memory import Scratch
 from .allocation import tiles_touched
 from .classify import FREE, OUT, classify_tiles, reach_radius
-from .grid import GridSpec, pack_keys, unique_keys, unpack_keys
+from .grid import KEY_LIMIT, GridSpec, pack_keys, unique_keys, unpack_keys
 from .scans import PreparedScan
 from .spatial import SphereIndex, TileIndex, box_distance, reaches, shift_for
 
@@ -319,15 +319,17 @@ class _PairCount:
         fresh &= ~_sorted_isin(packed, self.created_packed)
         delta_packed = packed[fresh]
         delta = unpack_keys(delta_packed)
-        created_packed = np.union1d(self.created_packed, delta_packed)
-        created = unpack_keys(created_packed)
+        at = np.searchsorted(self.created_packed, delta_packed)
+        created_packed = np.insert(self.created_packed, at, delta_packed)
         if self.index is None:
             self.index = TileIndex(self.existing, shift_for(sphere.radius_m, tile_m))
         added = len(tiles)
         added += len(self.index.rows_near(sphere.origin, sphere.radius_m, tile_m))
+        created = unpack_keys(_in_x_reach(created_packed, sphere, tile_m))
         added += int(tiles_near(sphere, created, self.grid).sum())
         if len(delta):
-            added += _pairs_near([*self.taken, *self._earlier_near(delta)], delta, self.grid)
+            taken = _reaching_box(self.taken, delta, tile_m)
+            added += _pairs_near([*taken, *self._earlier_near(delta)], delta, self.grid)
         if self.taken and self.pairs + added > self.most:
             return False
         self.pairs += added
@@ -345,6 +347,33 @@ class _PairCount:
             return [Sphere(s, *self.earlier.sphere(s)) for s in ids]
         near = set(scans_near(self.earlier, keys, self.grid)) - self.new
         return [s for s in self.earlier if s.scan_id in near]
+
+
+def _in_x_reach(packed: np.ndarray, sphere: Sphere, tile_m: float) -> np.ndarray:
+    """The packed keys (sorted) whose x is within the sphere's reach and a tile more on each
+    side (keys pack x first: one slice); all of them when the sphere is unbounded."""
+    if not math.isfinite(sphere.radius_m):
+        return packed
+    reach = sphere.radius_m + tile_m
+    x = [math.floor((sphere.origin[0] + d) / tile_m) + n for d, n in ((-reach, -1), (reach, 1))]
+    x = [min(max(v, 1 - KEY_LIMIT), KEY_LIMIT - 1) for v in x]
+    bounds = pack_keys(np.array([[x[0], 1 - KEY_LIMIT, 1 - KEY_LIMIT],
+                                 [x[1], KEY_LIMIT - 1, KEY_LIMIT - 1]]))  # fmt: skip
+    lo = int(np.searchsorted(packed, bounds[0], side="left"))
+    hi = int(np.searchsorted(packed, bounds[1], side="right"))
+    return packed[lo:hi]
+
+
+def _reaching_box(spheres: Sequence[Sphere], keys: np.ndarray, tile_m: float) -> list[Sphere]:
+    """The spheres that meet the box of the tiles ``keys`` (with the sphere's tile of
+    slack): the others reach none of them."""
+    if not spheres:
+        return []
+    lo = keys.min(axis=0) * tile_m
+    origins = np.array([s.origin for s in spheres], np.float64)
+    distance = box_distance(lo, (keys.max(axis=0) + 1) * tile_m, origins)
+    limit = np.array([s.radius_m for s in spheres], np.float64) + tile_m
+    return [s for s, near in zip(spheres, distance <= limit, strict=True) if near]
 
 
 def _pairs_near(spheres: Sequence[Sphere], keys: np.ndarray, grid: GridSpec) -> int:

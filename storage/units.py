@@ -74,14 +74,17 @@ RAW_SCAN_BYTES = 64 * 2**20
 
 class _Scans:
     """A scene's archived scans, prepared for the kernels on first use; the last two kept
-    prepared (a unit's memory is one scan or two, not the group's), and the scans as read
-    from the archive up to :data:`RAW_SCAN_BYTES` of range maps (at least the last one)."""
+    prepared (a unit's memory is one scan or two, not the group's), and the first scans
+    read from the archive kept as read, up to :data:`RAW_SCAN_BYTES` of range maps. The
+    scans are drawn in the same order pass after pass (the planner's two, a unit's batches
+    of tiles): keeping the first ones serves that many of each later pass from memory,
+    where keeping the last ones served none once a group's scans outgrew the budget."""
 
     def __init__(self, group: Path, params: FusionParams) -> None:
         self.archive = ScanArchive(group)
         self.params = params
         self._prepared: OrderedDict[str, PreparedScan] = OrderedDict()
-        self._raw: OrderedDict[str, Scan] = OrderedDict()
+        self._raw: dict[str, Scan] = {}
         self._raw_bytes = 0
 
     def __call__(self, scan_id: str) -> PreparedScan:
@@ -98,13 +101,11 @@ class _Scans:
     def _read(self, scan_id: str) -> Scan:
         scan = self._raw.get(scan_id)
         if scan is not None:
-            self._raw.move_to_end(scan_id)
             return scan
         scan = self.archive.get(scan_id)
-        self._raw[scan_id] = scan
-        self._raw_bytes += scan.range_m.nbytes
-        while self._raw_bytes > RAW_SCAN_BYTES and len(self._raw) > 1:
-            self._raw_bytes -= self._raw.popitem(last=False)[1].range_m.nbytes
+        if self._raw_bytes + scan.range_m.nbytes <= RAW_SCAN_BYTES:
+            self._raw[scan_id] = scan
+            self._raw_bytes += scan.range_m.nbytes
         return scan
 
 

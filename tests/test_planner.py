@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from rangefuse.engine import FusionParams, GridSpec, NoiseModel, prepare_scan
 from rangefuse.engine.allocation import tiles_touched
 from rangefuse.engine.classify import OUT, bounding_sphere, classify_tiles, reach_radius
-from rangefuse.engine.grid import pack_keys, unique_keys
+from rangefuse.engine.grid import pack_keys, unique_keys, unpack_keys
 from rangefuse.engine.planner import (
     Sphere,
     plan_add,
@@ -166,3 +168,31 @@ def test_a_rebuild_starts_from_unknown(scans):
     plan = plan_rebuild(GRID, keys, {"b": np.array([1]), "a": np.array([0, 1])})
     assert plan.created.all() and [s.scan_id for s in plan.steps] == ["a", "b"]
     assert all(step.sign == 1 for step in plan.steps)
+
+
+def test_the_pair_counts_windows_keep_every_tile_a_sphere_reaches():
+    """``_PairCount`` counts a sphere's created tiles among those in its x reach and the
+    pairs of new tiles among the spheres that meet their box: the same counts as over
+    every tile and every sphere (a long drive's count no longer grows with the map)."""
+    from rangefuse.engine.planner import _in_x_reach, _pairs_near, _reaching_box
+
+    rng = np.random.default_rng(5)
+    tile_m = GRID.tile_size_m
+    keys = unique_keys(rng.integers([-400, -20, -5], [400, 20, 5], (3000, 3)))
+    packed = np.sort(pack_keys(keys))
+    origins = rng.uniform(-60, 60, (40, 3)) * [tile_m * 6, 1, 1]
+    radii = rng.uniform(0.1, 30, 40) * tile_m
+    spheres = [
+        Sphere(f"s{n}", tuple(o), float(r))
+        for n, (o, r) in enumerate(zip(origins, radii, strict=True))
+    ]
+    spheres.append(Sphere("far", (0.0, 0.0, 0.0), math.inf))
+    for s in spheres:
+        window = unpack_keys(_in_x_reach(packed, s, tile_m))
+        assert len(window) < len(keys) or not math.isfinite(s.radius_m)
+        assert tiles_near(s, window, GRID).sum() == tiles_near(s, keys, GRID).sum()
+    for n in range(20):
+        some = keys[rng.choice(len(keys), 30)] if n % 2 else keys[n * 100 : n * 100 + 40]
+        near = _reaching_box(spheres[:-1], some, tile_m)
+        assert len(near) < 40
+        assert _pairs_near(near, some, GRID) == _pairs_near(spheres[:-1], some, GRID)

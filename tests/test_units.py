@@ -168,3 +168,25 @@ class _Workers(InProcess):
 
     def __init__(self, workers: int) -> None:
         self.workers = workers
+
+
+def test_a_units_scans_keep_the_first_read_when_they_outgrow_the_budget(tmp_path, monkeypatch):
+    """Scans drawn in the same order pass after pass (the planner's two, a unit's batches
+    of tiles): with room for two of four, each later pass reads two from the archive, not
+    four; every scan comes back as archived."""
+    from rangefuse.storage import units
+    from rangefuse.storage.archive import ScanArchive
+
+    scans = [scan for _, scan in make_dataset("room", views=4).scans]
+    archive = ScanArchive(tmp_path / "g")
+    for n, scan in enumerate(scans):
+        archive.put(f"s{n}", scan)
+    monkeypatch.setattr(units, "RAW_SCAN_BYTES", 2 * scans[0].range_m.nbytes)
+    reads = []
+    get = ScanArchive.get
+    monkeypatch.setattr(ScanArchive, "get", lambda self, s: reads.append(s) or get(self, s))
+    load = units._Scans(tmp_path / "g", PARAMS)
+    for _ in range(3):
+        for n, scan in enumerate(scans):
+            np.testing.assert_array_equal(load(f"s{n}").T_W_S, scan.T_W_S)
+    assert reads == ["s0", "s1", "s2", "s3", "s2", "s3", "s2", "s3"]
