@@ -15,6 +15,7 @@ __all__ = [
     "MERGE_TILES",
     "entries",
     "flat",
+    "merge",
     "merged",
     "read_rows",
     "remove_scan",
@@ -122,3 +123,21 @@ def remove_scan(
                 gone.append((scene, tile))
     write_rows(db, scene, rows)
     db.executemany("DELETE FROM tile_scans WHERE scene=? AND tile=?", gone)
+
+
+def merge(
+    db: sqlite3.Connection, scene: int, tiles: list[np.ndarray], values: list[np.ndarray]
+) -> None:
+    """Merge pairs (packed keys ``tiles`` and entries ``values``, in order) into their
+    tiles' rows, :data:`MERGE_TILES` tiles at a time (their rows' entries, read and
+    rewritten, are what a merge holds besides the pairs)."""
+    t, v = np.concatenate(tiles), np.concatenate(values)
+    order = np.argsort(t, kind="stable")  # a scan's later pair stays after its earlier
+    t, v = t[order], v[order]
+    del order
+    starts = np.flatnonzero(np.r_[True, t[1:] != t[:-1]])
+    for first in range(0, len(starts), MERGE_TILES):
+        a = starts[first]
+        b = starts[first + MERGE_TILES] if first + MERGE_TILES < len(starts) else len(t)
+        old = read_rows(db, scene, t[starts[first : first + MERGE_TILES]].tolist())
+        write_rows(db, scene, merged(t[a:b], v[a:b], old))

@@ -22,16 +22,9 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from . import _tile_rows
 from ._catalog_schema import SCHEMA, add_columns, upgrade
-from ._tile_rows import (
-    MERGE_PAIRS,
-    MERGE_TILES,
-    entries,
-    merged,
-    read_rows,
-    remove_scan,
-    write_rows,
-)
+from ._tile_rows import entries, merged, read_rows, remove_scan, write_rows
 
 __all__ = [
     "CATALOG_VERSION",
@@ -453,25 +446,11 @@ class Catalog:
             tiles.append(scan_tiles)
             values.append(2 * scan + owner.astype(np.int64))
             pending += len(scan_tiles)
-            if pending >= MERGE_PAIRS:
-                self._merge(num, tiles, values)
+            if pending >= _tile_rows.MERGE_PAIRS:
+                _tile_rows.merge(self._db, num, tiles, values)
                 tiles, values, pending = [], [], 0
         if pending:
-            self._merge(num, tiles, values)
-
-    def _merge(self, num: int, tiles: list[np.ndarray], values: list[np.ndarray]) -> None:
-        """Merge pairs into their tiles' rows, :data:`MERGE_TILES` tiles at a time (their
-        rows' entries, read and rewritten, are what a merge holds besides the pairs)."""
-        t, v = np.concatenate(tiles), np.concatenate(values)
-        order = np.argsort(t, kind="stable")  # a scan's later pair stays after its earlier
-        t, v = t[order], v[order]
-        del order
-        starts = np.flatnonzero(np.r_[True, t[1:] != t[:-1]])
-        for first in range(0, len(starts), MERGE_TILES):
-            a = starts[first]
-            b = starts[first + MERGE_TILES] if first + MERGE_TILES < len(starts) else len(t)
-            old = read_rows(self._db, num, t[starts[first : first + MERGE_TILES]].tolist())
-            write_rows(self._db, num, merged(t[a:b], v[a:b], old))
+            _tile_rows.merge(self._db, num, tiles, values)
 
     def remove_tile_scans(
         self, scene_id: str, scan_id: str, ranges: Sequence[tuple[int, int]] | None = None

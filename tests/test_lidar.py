@@ -505,8 +505,8 @@ def test_the_catalogs_rows_per_tile_merge_as_rows_per_pair_did(tmp_path, monkeyp
         )
     found = []
     for batch, tiles_at_once in ((2**21, 2**16), (100, 7)):
-        monkeypatch.setattr("rangefuse.storage.catalog.MERGE_PAIRS", batch)
-        monkeypatch.setattr("rangefuse.storage.catalog.MERGE_TILES", tiles_at_once)
+        monkeypatch.setattr("rangefuse.storage._tile_rows.MERGE_PAIRS", batch)
+        monkeypatch.setattr("rangefuse.storage._tile_rows.MERGE_TILES", tiles_at_once)
         (tmp_path / str(batch)).mkdir()
         catalog = _catalog(tmp_path / str(batch))
         with catalog.transaction():
